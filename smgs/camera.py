@@ -1,0 +1,73 @@
+"""Pinhole camera in the OpenCV convention (+x right, +y down, +z forward)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Camera:
+    """A pinhole camera.
+
+    K: [3, 3] pixel intrinsics (fx, fy, cx, cy; the pixel (i, j) has its centre at (i+0.5, j+0.5)).
+    viewmat: [4, 4] world-to-camera transform.
+    """
+
+    K: torch.Tensor
+    viewmat: torch.Tensor
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        self.K = torch.as_tensor(self.K)
+        self.viewmat = torch.as_tensor(self.viewmat)
+        if self.K.shape != (3, 3):
+            raise ValueError(f"Camera.K must be [3,3], got {tuple(self.K.shape)}")
+        if self.viewmat.shape != (4, 4):
+            raise ValueError(f"Camera.viewmat must be [4,4] world-to-camera, got {tuple(self.viewmat.shape)}")
+        self.width, self.height = int(self.width), int(self.height)
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"Camera size must be positive, got {self.width}x{self.height}")
+
+    @property
+    def camtoworld(self) -> torch.Tensor:
+        return torch.linalg.inv(self.viewmat)
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates."""
+        return self.camtoworld[:3, 3]
+
+    def to(self, device=None, dtype=None) -> "Camera":
+        return Camera(self.K.to(device=device, dtype=dtype), self.viewmat.to(device=device, dtype=dtype),
+                      self.width, self.height)
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera with the image resized by ``factor`` (pixel-centre convention kept)."""
+        K = self.K.clone()
+        w, h = round(self.width * factor), round(self.height * factor)
+        # Per-axis factors of the rounded size, so the image edges stay on the same rays.
+        K[0] = self.K[0] * (w / self.width)
+        K[1] = self.K[1] * (h / self.height)
+        return Camera(K, self.viewmat.clone(), w, h)
+
+    @staticmethod
+    def look_at(eye, target, up, fx: float, fy: float, width: int, height: int,
+                cx: float | None = None, cy: float | None = None) -> "Camera":
+        """Camera at ``eye`` looking at ``target``; ``up`` is the world up (image -y)."""
+        eye, target, up = (torch.as_tensor(v, dtype=torch.float64) for v in (eye, target, up))
+        z = target - eye
+        z = z / z.norm()
+        x = torch.linalg.cross(z, up)
+        x = x / x.norm()
+        y = torch.linalg.cross(z, x)
+        R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
+        viewmat = torch.eye(4, dtype=torch.float64)
+        viewmat[:3, :3] = R
+        viewmat[:3, 3] = -R @ eye
+        K = torch.tensor([[fx, 0.0, width / 2 if cx is None else cx],
+                          [0.0, fy, height / 2 if cy is None else cy],
+                          [0.0, 0.0, 1.0]], dtype=torch.float64)
+        return Camera(K.float(), viewmat.float(), width, height)

@@ -1,0 +1,179 @@
+"""Public entry points of the renderer and the choice of backend."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Callable
+
+import torch
+
+from smgs.camera import Camera
+from smgs.raster import constants as K
+from smgs.raster.projection import project_gaussians
+from smgs.raster.sh import eval_sh
+from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+
+# name -> (module, function, availability check). Imported lazily so that listing backends never
+# compiles or loads a kernel.
+_BACKENDS: dict[str, tuple[str, str]] = {
+    "reference": ("smgs.raster.reference", "rasterize_splats_reference"),
+    "cpu": ("smgs.raster.cpu", "rasterize_splats_cpu"),
+}
+
+
+def _load_backend(name: str) -> Callable[..., RenderOutput]:
+    if name not in _BACKENDS:
+        raise ValueError(f"unknown renderer backend {name!r}; expected 'auto' or one of {', '.join(_BACKENDS)}")
+    module, fn = _BACKENDS[name]
+    return getattr(importlib.import_module(module), fn)
+
+
+def backend_available(name: str, device: torch.device | str = "cpu",
+                      dtype: torch.dtype = torch.float32) -> bool:
+    """Whether ``name`` can render tensors of this device and dtype here."""
+    device = torch.device(device)
+    if name == "reference":
+        return True
+    if name == "cpu":
+        if device.type != "cpu" or dtype != torch.float32:
+            return False
+        try:
+            from smgs.raster import cpu
+        except ImportError:
+            return False
+        return cpu.is_available()
+    return False
+
+
+def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype) -> str:
+    """'auto' picks the fastest backend available for the tensors' device and dtype."""
+    if backend != "auto":
+        if backend not in _BACKENDS:
+            _load_backend(backend)  # raises the error that lists the backends
+        if not backend_available(backend, device, dtype):
+            raise RuntimeError(f"renderer backend {backend!r} cannot render {dtype} tensors on "
+                               f"{torch.device(device)}; use backend='auto' or 'reference'")
+        return backend
+    for name in ("cpu",):
+        if backend_available(name, device, dtype):
+            return name
+    return "reference"
+
+
+def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode) -> None:
+    n = means2d.shape[0]
+    if means2d.shape != (n, 2):
+        raise ValueError(f"means2d must be [N,2], got {tuple(means2d.shape)}")
+    if conics.shape != (n, 3):
+        raise ValueError(f"conics must be [N,3], got {tuple(conics.shape)}")
+    if opacities.shape != (n,) or depths.shape != (n,):
+        raise ValueError("opacities and depths must be [N]")
+    if colors.dim() != 2 or colors.shape[0] != n or colors.shape[1] < 1:
+        raise ValueError(f"colors must be [N,C] with C >= 1, got {tuple(colors.shape)}")
+    use_gef, use_softmax = mode_flags(mode)
+    needed = ([("alpha", alpha)] if use_gef else []) + ([("beta", beta), ("gamma", gamma)] if use_softmax else [])
+    for name, t in needed:
+        if t is None:
+            raise ValueError(f"mode {mode!r} needs {name} [N]; got None")
+        if t.shape != (n,):
+            raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+
+
+def rasterize_splats(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    depths: torch.Tensor,
+    alpha: torch.Tensor | None,
+    beta: torch.Tensor | None,
+    gamma: torch.Tensor | None,
+    width: int,
+    height: int,
+    mode: str = "softmax_gs",
+    k_max: int = K.DEFAULT_K_MAX,
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+    eq15: Eq15 = "solved",
+    reg_values: torch.Tensor | None = None,
+    reg_depth_scale: float = 1.0,
+) -> RenderOutput:
+    """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
+
+    means2d [N,2] in pixels (pixel (i, j) has its centre at (i+0.5, j+0.5)); conics [N,3] = (a, b, c)
+    of the inverse 2D covariance, used as given; opacities [N] in [0, 1]; colors [N,C]; depths [N];
+    alpha (GEF sharpness), beta (softmax strength), gamma (depth decay) [N] or None where the mode
+    ignores them. ``eq15`` selects the solved (default) or printed form of eq. (15).
+    ``reg_values [N,R]`` (optional) adds per-pixel sums for the variance regulariser over the
+    first k_max splats of each pixel, weighted by 1/(1 + (d - d_front)/reg_depth_scale)
+    (the weights carry no gradient).
+    """
+    _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode)
+    if eq15 not in ("solved", "printed"):
+        raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
+    if k_max < 0:
+        raise ValueError(f"k_max must be >= 0, got {k_max}")
+    name = resolve_backend(backend, means2d.device, means2d.dtype)
+    fn = _load_backend(name)
+    return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
+              mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
+              reg_depth_scale=reg_depth_scale)
+
+
+def rasterize(
+    means3d: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors_or_sh: torch.Tensor,
+    camera: Camera,
+    alpha: torch.Tensor | None = None,
+    beta: torch.Tensor | None = None,
+    gamma: torch.Tensor | None = None,
+    mode: str = "softmax_gs",
+    k_max: int = K.DEFAULT_K_MAX,
+    sh_degree: int | None = None,
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+    eq15: Eq15 = "solved",
+    reg_values: torch.Tensor | None = None,
+    reg_depth_scale: float = 1.0,
+    near_plane: float = K.NEAR_PLANE,
+    eps2d: float = K.EPS2D,
+    clamp_sh_colors: bool = True,
+) -> RenderOutput:
+    """Render 3D Gaussians (activated values) through ``camera``.
+
+    quats are wxyz and normalised here; colors_or_sh is [N,C] colours, or [N,K,C] SH coefficients
+    evaluated at ``sh_degree`` (+0.5 and clamped at 0 as 3DGS, unless ``clamp_sh_colors=False``).
+    ``extras`` of the output hold the projection (``ids``, ``means2d``, ``radii``), so a
+    densification strategy can read the 2D mean gradients (call ``retain_grad`` on ``means2d``).
+    """
+    n = means3d.shape[0]
+    for name, t, shape in (("means3d", means3d, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
+                           ("opacities", opacities, (n,))):
+        if t.shape != shape:
+            raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
+    proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d)
+    ids = proj.ids
+    if sh_degree is None:
+        if colors_or_sh.dim() != 2:
+            raise ValueError("colors_or_sh without sh_degree must be [N,C] colours")
+        colors = colors_or_sh[ids]
+    else:
+        if colors_or_sh.dim() != 3:
+            raise ValueError("colors_or_sh with sh_degree must be [N,K,C] SH coefficients")
+        center = camera.center.to(means3d.device, means3d.dtype)
+        dirs = means3d[ids] - center
+        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        colors = eval_sh(sh_degree, colors_or_sh[ids], dirs) + 0.5
+        if clamp_sh_colors:
+            colors = colors.clamp_min(0.0)
+    pick = (lambda t: None if t is None else t[ids])
+    means2d = proj.means2d
+    out = rasterize_splats(means2d, proj.conics, opacities[ids], colors, proj.depths,
+                           pick(alpha), pick(beta), pick(gamma), camera.width, camera.height,
+                           mode=mode, k_max=k_max, background=background, backend=backend, eq15=eq15,
+                           reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale)
+    out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)
+    return out

@@ -1,0 +1,206 @@
+"""Pure-PyTorch compositing of projected splats: the oracle every other backend is tested against.
+
+Dense (every splat is tested at every pixel), differentiable through autograd, any dtype (float64
+for gradcheck and the stiff-case battery) and any device. Slow by design: use it on small scenes.
+
+The per-pixel loop is Algorithm 1 of the Softmax-GS supplementary with these changes, all
+algebraically equal to the paper's solved system and written so that no step can produce 0/0,
+inf·0 or a catastrophic cancellation (each is exercised by tests/test_raster_stiff.py):
+
+* the transmittance T and the absorbance A = 1 - T are both carried, A as A + a·T, so tiny
+  opacities are not lost in 1 - T; the softmax step sets them to the vanilla product directly,
+  which is what eqs. (14) and (16) maintain;
+* the running depth / exponent means are updated incrementally, d += (d_k - d)·w, so a mean of
+  equal depths stays bit-exact (s = 1 exactly at any γ);
+* the two softmax weights are two sigmoids, never 1 - w (which rounds to 0 at large β·Δp);
+* eq. (15) solved: ã_cur = â_cur(1-T)/(â_cur + â_past·T) with the un-updated â_past (default), or
+  as printed in line 14 of Algorithm 1 (``eq15="printed"``);
+* the root of eq. (16) as m = 2C/(A + √D), D = (ā_cur - ā_past)² + 4·ā_cur·ā_past·T_orig (a sum
+  of non-negative terms), and m = 1 exactly where it is 1 by construction (s = 0, or s = 1 with the
+  solved eq. 15);
+* the past colour is rescaled by r = ā_past/a_past written without dividing by a_past:
+  r = m·(s·w_past·(1-T_orig)/(â_past + â_cur) + 1 - s);
+* (-p)^α uses q = max(-p, 0) and defines q^α and its gradients as 0 at q = 0;
+* γ·|Δd| is 0 when Δd = 0 (γ may be inf).
+
+The depth channel is composited as one more colour channel (so it is rescaled with the colour,
+as Algorithm 1 does for c_past) and divided by alpha at the end.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from smgs.raster import constants as K
+from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+
+
+def _sorted_order(depths: torch.Tensor) -> torch.Tensor:
+    """Depth order, ties broken by index (a stable sort keeps index order among equals)."""
+    return torch.sort(depths.detach(), stable=True).indices
+
+
+def _gef_power(q: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """q^α with q >= 0, and q^α := 0 with zero gradients at q = 0 (the gradient of q^α at 0 is
+    infinite for α < 1 and ln(0)·0 for dα)."""
+    pos = q > 0
+    q_safe = torch.where(pos, q, torch.ones_like(q))
+    return torch.where(pos, q_safe ** alpha, torch.zeros_like(q))
+
+
+def softmax_step(T, A, C, d_past, p_past, a, p, d, c, beta, gamma, eq15: str):
+    """One softmax-competition step of Algorithm 1 (lines 7-27) for a batch of pixels.
+
+    Inputs must be valid (A > 0, a > 0); the caller masks other pixels. Returns the new
+    (T, A, C, d_past, p_past). T and A come out as the vanilla product (eqs. 14 and 16).
+    """
+    T0 = T * (1 - a)                      # line 7, the original transmittance
+    U = A + a * T                         # 1 - T0 without cancellation
+    x = beta * (p - p_past)               # line 9: w_cur = 1/(1 + exp(β(p_past - p_cur)))
+    w_cur = torch.sigmoid(x)
+    w_past = torch.sigmoid(-x)            # line 11, not 1 - w_cur
+    h_cur = w_cur * a                     # line 10, â_cur
+    h_past = w_past * A                   # line 12, â_past
+    S = h_past + h_cur
+    t_past = h_past * U / S               # eq. (15), ã_past
+    if eq15 == "solved":
+        t_cur = h_cur * U / (h_cur + h_past * T0)
+    else:                                 # line 14 as printed: the updated ã_past
+        t_cur = h_cur * U / (h_cur + t_past * T0)
+    dd = d - d_past
+    g = torch.where(dd == 0, torch.zeros_like(dd), gamma * dd.abs())
+    s = torch.exp(-g)                     # line 15
+    b_past = s * t_past + (1 - s) * A     # line 16
+    b_cur = s * t_cur + (1 - s) * a       # line 17
+    # line 18, the smaller root of (1 - m·ā_past)(1 - m·ā_cur) = T0, in the cancellation-free form
+    D = (b_cur - b_past) ** 2 + 4 * b_cur * b_past * T0
+    m = 2 * U / (b_past + b_cur + torch.sqrt(D))
+    exact = (s == 0) | ((s == 1) & (eq15 == "solved"))
+    m = torch.where(exact, torch.ones_like(m), m)
+    a_cur = m * b_cur                     # line 20
+    T_past = 1 - m * b_past               # lines 19, 21
+    r = m * (s * w_past * U / S + (1 - s))  # ā_past / a_past for line 22
+    wk = (a_cur * T_past / U)             # share of the current splat in the new means (25-26)
+    C = C * r[:, None] + c * (a_cur * T_past)[:, None]   # lines 22, 24
+    d_past = d_past + (d - d_past) * wk
+    p_past = p_past + (p - p_past) * wk
+    return T0, U, C, d_past, p_past
+
+
+def vanilla_step(T, A, C, d_past, p_past, a, p, d, c, track_means: bool):
+    """Front-to-back compositing of one splat (3DGS); the running means only where softmax needs
+    them later."""
+    aT = a * T
+    U = A + aT
+    C = C + c * aT[:, None]
+    if track_means:
+        wk = aT / U
+        d_past = d_past + (d - d_past) * wk
+        p_past = p_past + (p - p_past) * wk
+    return T * (1 - a), U, C, d_past, p_past
+
+
+def rasterize_splats_reference(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    depths: torch.Tensor,
+    alpha: torch.Tensor | None,
+    beta: torch.Tensor | None,
+    gamma: torch.Tensor | None,
+    width: int,
+    height: int,
+    mode: str = "softmax_gs",
+    k_max: int = K.DEFAULT_K_MAX,
+    background: torch.Tensor | None = None,
+    eq15: Eq15 = "solved",
+    reg_values: torch.Tensor | None = None,
+    reg_depth_scale: float = 1.0,
+) -> RenderOutput:
+    """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments."""
+    use_gef, use_softmax = mode_flags(mode)
+    device, dtype = means2d.device, means2d.dtype
+    n_ch = colors.shape[1]
+    P = width * height
+    ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
+                            torch.arange(width, device=device, dtype=dtype), indexing="ij")
+    px = xs.reshape(-1) + K.PIXEL_CENTER
+    py = ys.reshape(-1) + K.PIXEL_CENTER
+
+    T = torch.ones(P, device=device, dtype=dtype)
+    A = torch.zeros(P, device=device, dtype=dtype)
+    C = torch.zeros(P, n_ch + 1, device=device, dtype=dtype)   # colour + depth channel
+    d_past = torch.zeros(P, device=device, dtype=dtype)
+    p_past = torch.zeros(P, device=device, dtype=dtype)
+    done = torch.zeros(P, device=device, dtype=torch.bool)
+    count = torch.zeros(P, device=device, dtype=torch.long)
+    n_reg = 0 if reg_values is None else reg_values.shape[1]
+    reg = torch.zeros(P, 1 + 2 * n_reg, device=device, dtype=dtype) if n_reg else None
+    d_front = torch.zeros(P, device=device, dtype=dtype)
+    track = use_softmax and k_max > 0
+    one = torch.ones((), device=device, dtype=dtype)
+    half = 0.5 * one
+
+    for k in _sorted_order(depths).tolist():
+        dx = px - means2d[k, 0]
+        dy = py - means2d[k, 1]
+        ca, cb, cc = conics[k, 0], conics[k, 1], conics[k, 2]
+        q = torch.clamp(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy, min=0.0)  # -p >= 0
+        e = _gef_power(q, alpha[k]) if use_gef else q
+        kern = torch.exp(-torch.clamp(e, max=-K.EXP_ARG_MIN))
+        a = torch.clamp(opacities[k] * kern, max=K.ALPHA_MAX)
+        reach = (~done) & (q <= -K.P_MIN) & (a >= K.ALPHA_MIN)
+        if not bool(reach.any()):
+            continue
+        stop = reach & (T * (1 - a) < K.T_MIN)
+        done = done | stop
+        reach = reach & ~stop
+        p = -q
+        col = torch.cat([colors[k], depths[k].reshape(1)])[None, :]
+        in_head = reach & (count < k_max)
+        soft = in_head & (A > 0) if use_softmax else torch.zeros_like(reach)
+        van = reach & ~soft
+
+        new_state = [T, A, C, d_past, p_past]
+        if bool(van.any()):
+            # a = ½ where the step does not apply keeps U = A + a·T > 0 (no NaN gradients).
+            vs = vanilla_step(T, A, C, d_past, p_past, torch.where(van, a, half), p, depths[k], col,
+                              track)
+            new_state = [torch.where(van[:, None] if v.dim() == 2 else van, v, o)
+                         for v, o in zip(vs, new_state)]
+        if bool(soft.any()):
+            # Benign values where the step does not apply, so no branch produces NaN gradients.
+            A_s = torch.where(soft, A, half)
+            a_s = torch.where(soft, a, half)
+            T_s = torch.where(soft, T, half)
+            ss = softmax_step(T_s, A_s, C, d_past, p_past, a_s, p, depths[k], col, beta[k],
+                              gamma[k], eq15)
+            new_state = [torch.where(soft[:, None] if v.dim() == 2 else soft, v, o)
+                         for v, o in zip(ss, new_state)]
+        T, A, C, d_past, p_past = new_state
+
+        if reg is not None:
+            first = in_head & (count == 0)
+            d_front = torch.where(first, depths[k].detach().expand(P), d_front)
+            w = 1.0 / (1.0 + (depths[k].detach() - d_front) / reg_depth_scale)
+            w = torch.where(in_head, w, torch.zeros_like(w))
+            v = reg_values[k][None, :]
+            reg = reg + torch.cat([w[:, None], w[:, None] * v, w[:, None] * v * v], dim=1)
+        count = count + reach.long()
+
+    rgb = C[:, :n_ch]
+    if background is not None:
+        rgb = rgb + T[:, None] * background.to(dtype)[None, :]
+    alpha_out = A
+    pos = A > 0
+    depth = torch.where(pos, C[:, n_ch] / torch.where(pos, A, one), torch.zeros_like(A))
+    stats = RenderStats(n_contrib=count.reshape(height, width), pairs_evaluated=P * means2d.shape[0],
+                        k_max=k_max if use_softmax else 2**31 - 1)
+    return RenderOutput(
+        rgb=rgb.reshape(height, width, n_ch),
+        alpha=alpha_out.reshape(height, width),
+        depth=depth.reshape(height, width),
+        stats=stats,
+        reg=None if reg is None else reg.reshape(height, width, -1),
+    )

@@ -1,0 +1,66 @@
+"""Plain data returned by the renderer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+Mode = Literal["3dgs", "gef_only", "softmax_only", "softmax_gs"]
+MODES: tuple[str, ...] = ("3dgs", "gef_only", "softmax_only", "softmax_gs")
+Eq15 = Literal["solved", "printed"]
+
+
+def mode_flags(mode: str) -> tuple[bool, bool]:
+    """(uses GEF sharpness α, uses softmax competition β, γ) for a mode name."""
+    if mode not in MODES:
+        raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(MODES)}")
+    return mode in ("gef_only", "softmax_gs"), mode in ("softmax_only", "softmax_gs")
+
+
+@dataclass
+class RenderStats:
+    """Per-render counters (no gradients).
+
+    n_contrib: [H, W] number of splats composited at each pixel.
+    pairs_evaluated: splat-pixel pairs the backend tested (backend-specific: the dense reference
+        tests every pair, the tiled kernels only pairs inside a splat's tiles).
+    frac_within_kmax: fraction of pixels reached by at least one splat whose composited splats all
+        fell within the first k_max (the paper's "coverage", 70-85% on Mip-NeRF360); 1.0 for modes
+        without softmax competition.
+    """
+
+    n_contrib: torch.Tensor
+    pairs_evaluated: int
+    k_max: int
+
+    @property
+    def contributions(self) -> int:
+        return int(self.n_contrib.sum())
+
+    @property
+    def splats_per_pixel(self) -> float:
+        return float(self.n_contrib.float().mean())
+
+    @property
+    def frac_within_kmax(self) -> float:
+        hit = self.n_contrib > 0
+        n = int(hit.sum())
+        if n == 0:
+            return 1.0
+        return float(((self.n_contrib <= self.k_max) & hit).sum()) / n
+
+
+@dataclass
+class RenderOutput:
+    """rgb [H, W, C]; alpha [H, W] = 1 - final T; depth [H, W] expected depth normalised by alpha
+    (0 where alpha is 0); reg [H, W, 1 + 2R] or None: per-pixel sums of the β/γ variance
+    regulariser (Σw, then Σw·v_r and Σw·v_r² for each regularised value r)."""
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    stats: RenderStats
+    reg: torch.Tensor | None = None
+    extras: dict = field(default_factory=dict)
