@@ -1,0 +1,77 @@
+"""A scene: train/test views, optional SfM points, background and video trajectory.
+
+A scene declares what it has (``capabilities``); a method declares what it needs, and a run leaves
+out every stage that nobody needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from smgs.camera import Camera
+
+
+@dataclass
+class View:
+    """One posed image. ``image`` is uint8 [H, W, 3] (8-bit, as stored on disk); ``rgb`` gives
+    float [H, W, 3] in [0, 1]."""
+
+    camera: Camera
+    image: torch.Tensor
+    name: str
+
+    def __post_init__(self) -> None:
+        h, w = self.image.shape[:2]
+        if (w, h) != (self.camera.width, self.camera.height):
+            raise ValueError(f"view {self.name!r}: image is {w}x{h} but its camera is "
+                             f"{self.camera.width}x{self.camera.height}")
+
+    @property
+    def rgb(self) -> torch.Tensor:
+        img = self.image
+        return img.float() / 255.0 if img.dtype == torch.uint8 else img.float()
+
+
+@dataclass
+class Scene:
+    """Everything a method may take from a dataset.
+
+    extent: the 3DGS ``cameras_extent`` (1.1 × the largest distance of a train camera centre from
+        their mean), the unit of the position learning rate and of the size thresholds.
+    flat: the scene is a 2D target seen by one fixed camera (no view dependence: SH degree 0).
+    meta: provenance recorded in every result (dataset, resolution rule, downscale factor,
+        resampling, split rule, source path).
+    """
+
+    name: str
+    train: list[View]
+    test: list[View]
+    extent: float
+    points: torch.Tensor | None = None          # [M, 3] SfM points
+    point_colors: torch.Tensor | None = None    # [M, 3] in [0, 1]
+    background: torch.Tensor | None = None      # [3] in [0, 1]
+    trajectory: list[Camera] | None = None      # video path for view-consistency metrics
+    flat: bool = False
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def capabilities(self) -> set[str]:
+        caps = set()
+        if self.points is not None:
+            caps.add("sfm_points")
+        if self.background is not None:
+            caps.add("background")
+        if self.trajectory:
+            caps.add("trajectory")
+        if not self.flat:
+            caps.add("view_dependence")
+        return caps
+
+
+def camera_extent(cameras: list[Camera]) -> float:
+    """3DGS ``getNerfppNorm`` radius: 1.1 × max distance of the camera centres from their mean."""
+    centers = torch.stack([c.center.double() for c in cameras])
+    d = (centers - centers.mean(0)).norm(dim=1).max().item()
+    return 1.1 * d if d > 0 else 1.0
