@@ -19,7 +19,8 @@ inf·0 or a catastrophic cancellation (each is exercised by tests/test_raster_st
   of non-negative terms), and m = 1 exactly where it is 1 by construction (s = 0, or s = 1 with the
   solved eq. 15);
 * the past colour is rescaled by r = ā_past/a_past written without dividing by a_past:
-  r = m·(s·w_past·(1-T_orig)/(â_past + â_cur) + 1 - s);
+  r = m·(s·w_past·(1-T_orig)/(â_past + â_cur) + 1 - s), and line 21 as T_past = T + a_past·(1 - r),
+  which is T exactly where the softmax changes nothing (s = 0);
 * (-p)^α uses q = max(-p, 0) and defines q^α and its gradients as 0 at q = 0;
 * γ·|Δd| is 0 when Δd = 0 (γ may be inf).
 
@@ -78,8 +79,8 @@ def softmax_step(T, A, C, d_past, p_past, a, p, d, c, beta, gamma, eq15: str):
     exact = (s == 0) | ((s == 1) & (eq15 == "solved"))
     m = torch.where(exact, torch.ones_like(m), m)
     a_cur = m * b_cur                     # line 20
-    T_past = 1 - m * b_past               # lines 19, 21
     r = m * (s * w_past * U / S + (1 - s))  # ā_past / a_past for line 22
+    T_past = T + A * (1 - r)              # lines 19, 21: 1 - m·ā_past, exactly T where r = 1
     wk = (a_cur * T_past / U)             # share of the current splat in the new means (25-26)
     C = C * r[:, None] + c * (a_cur * T_past)[:, None]   # lines 22, 24
     d_past = d_past + (d - d_past) * wk
