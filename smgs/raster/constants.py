@@ -38,3 +38,7 @@ DEFAULT_K_MAX = 128
 EXP_ARG_MIN = -80.0
 """Arguments to exp are clamped here: exp(-80) ~ 1.8e-35 is already far below every threshold, and
 PyTorch's CPU exp is ~10x slower below -88 (denormals)."""
+
+DECAY_ARG_MAX = 1e3
+"""γ·|Δd| is capped here: s = exp(-1e3) is exactly 0 in float32 and float64, and the cap keeps
+γ = inf (the GEF-only limit) free of inf·0 in the gradients."""

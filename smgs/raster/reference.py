@@ -22,7 +22,7 @@ inf·0 or a catastrophic cancellation (each is exercised by tests/test_raster_st
   r = m·(s·w_past·(1-T_orig)/(â_past + â_cur) + 1 - s), and line 21 as T_past = T + a_past·(1 - r),
   which is T exactly where the softmax changes nothing (s = 0);
 * (-p)^α uses q = max(-p, 0) and defines q^α and its gradients as 0 at q = 0;
-* γ·|Δd| is 0 when Δd = 0 (γ may be inf).
+* γ·|Δd| is 0 when Δd = 0 (γ may be inf), and capped where s underflows to 0 anyway.
 
 The depth channel is composited as one more colour channel (so it is rescaled with the colour,
 as Algorithm 1 does for c_past) and divided by alpha at the end.
@@ -69,8 +69,12 @@ def softmax_step(T, A, C, d_past, p_past, a, p, d, c, beta, gamma, eq15: str):
     else:                                 # line 14 as printed: the updated ã_past
         t_cur = h_cur * U / (h_cur + t_past * T0)
     dd = d - d_past
-    g = torch.where(dd == 0, torch.zeros_like(dd), gamma * dd.abs())
-    s = torch.exp(-g)                     # line 15
+    # line 15, s = exp(-γ|Δd|), with γ|Δd| := 0 at Δd = 0 (γ may be inf) and := G_MAX where s
+    # underflows to 0; γ is zeroed in the unused branch so no inf·0 reaches the gradients.
+    flat = (dd == 0) | ((gamma * dd.abs()).detach() > K.DECAY_ARG_MAX)
+    g_live = torch.where(flat, torch.zeros_like(dd), gamma) * dd.abs()
+    g = torch.where(flat, torch.where(dd == 0, 0.0, K.DECAY_ARG_MAX) * torch.ones_like(dd), g_live)
+    s = torch.exp(-g)
     b_past = s * t_past + (1 - s) * A     # line 16
     b_cur = s * t_cur + (1 - s) * a       # line 17
     # line 18, the smaller root of (1 - m·ā_past)(1 - m·ā_cur) = T0, in the cancellation-free form
