@@ -1,0 +1,139 @@
+"""Image metrics computed once, in one place, the way the 3DGS evaluation computes them.
+
+3DGS saves renders as PNG (``torchvision.utils.save_image``: ×255, +0.5, clamp, truncate to uint8)
+and reads them back with PIL before ``metrics.py`` runs, so every metric here sees 8-bit
+quantised predictions and ground truths. PSNR is per image, then the mean over images; SSIM is
+``smgs.metrics.ssim`` (11×11 Gaussian window, σ 1.5, zero padding, mean of the map); LPIPS is the
+VGG network of ``smgs.metrics.lpips`` and is ``Missing`` without local weights; FLIP is LDR at
+67 ppd. Per-image values are kept; means derive from them.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from smgs.metrics import lpips as lpips_mod
+from smgs.metrics.flip import FLIP_NAME, flip_available, flip_error_map
+from smgs.metrics.result import Missing, json_value
+from smgs.metrics.ssim import ssim as ssim_3dgs
+
+
+def to_uint8(img: torch.Tensor) -> torch.Tensor:
+    """[H, W, C] float in [0, 1] -> uint8, exactly as ``torchvision.utils.save_image`` rounds."""
+    return img.detach().float().mul(255).add(0.5).clamp(0, 255).to(torch.uint8)
+
+
+def quantize_8bit(img: torch.Tensor) -> torch.Tensor:
+    """The float image a PNG round trip (save, read back, /255) gives, without touching disk."""
+    return to_uint8(img).float().div(255.0).to(img.device)
+
+
+def png_roundtrip(img: torch.Tensor) -> torch.Tensor:
+    """Encode as PNG with PIL and decode again (slow; tests check quantize_8bit against it)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(to_uint8(img).cpu().numpy()).save(buf, format="PNG")
+    buf.seek(0)
+    return torch.from_numpy(np.asarray(Image.open(buf)).copy()).float().div(255.0)
+
+
+def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """PSNR in dB for images in [0, 1] (3DGS ``utils/image_utils.psnr``); inf for equal images."""
+    mse = float(((pred.double() - gt.double()) ** 2).mean())
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
+
+
+def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """SSIM as 3DGS computes it (see ``smgs.metrics.ssim``), as a float."""
+    with torch.no_grad():
+        return float(ssim_3dgs(pred.float(), gt.float()))
+
+
+@dataclass
+class ImageMetrics:
+    """Per-image metrics of one set of predictions against ground truth (8-bit quantised).
+
+    ``lpips`` and ``flip`` hold a list of per-image values or ``Missing(reason)``; ``lpips_name``
+    names the network, the weights and the input convention that produced the values.
+    """
+
+    names: list[str]
+    psnr: list[float]
+    ssim: list[float]
+    lpips: list[float] | Missing
+    lpips_name: str
+    flip: list[float] | Missing
+    flip_name: str = FLIP_NAME
+    quantized: bool = True
+    extra: dict = field(default_factory=dict)
+
+    @staticmethod
+    def _mean(values: list[float] | Missing) -> float | Missing:
+        if isinstance(values, Missing):
+            return values
+        return float(np.mean(values)) if values else Missing("no images")
+
+    def means(self) -> dict[str, float | Missing]:
+        """Scene means keyed by metric name; the LPIPS and FLIP keys carry their net/settings."""
+        return {"psnr": self._mean(self.psnr), "ssim": self._mean(self.ssim),
+                self.lpips_name: self._mean(self.lpips), self.flip_name: self._mean(self.flip)}
+
+    def to_json(self) -> dict:
+        per_view = {"psnr": self.psnr, "ssim": self.ssim, self.lpips_name: self.lpips,
+                    self.flip_name: self.flip}
+        return {"names": self.names, "quantized_8bit": self.quantized,
+                "mean": json_value(self.means()), "per_view": json_value(per_view), **self.extra}
+
+
+def _check_pair(pred: torch.Tensor, gt: torch.Tensor, i: int) -> None:
+    if pred.dim() != 3 or pred.shape[-1] != 3:
+        raise ValueError(f"image {i}: predictions must be [H, W, 3], got {tuple(pred.shape)}")
+    if pred.shape != gt.shape:
+        raise ValueError(f"image {i}: prediction {tuple(pred.shape)} and ground truth "
+                         f"{tuple(gt.shape)} differ in shape")
+
+
+def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
+                    names: Sequence[str] | None = None, *,
+                    lpips: "lpips_mod.LPIPS | Missing | None" = None, lpips_net: str = "vgg",
+                    lpips_weights: str | None = None, flip: bool = True,
+                    quantize: bool = True) -> ImageMetrics:
+    """PSNR, SSIM, LPIPS and FLIP per image.
+
+    ``lpips``: a loaded network, a ``Missing`` to skip with that reason, or None to load ``lpips_net``
+    from ``lpips_weights`` / ``$SMGS_LPIPS_WEIGHTS`` (Missing if there are none).
+    ``quantize``: round both images to 8 bits first, as 3DGS's PNG round trip does.
+    """
+    if len(preds) != len(gts):
+        raise ValueError(f"{len(preds)} predictions but {len(gts)} ground-truth images")
+    names = [f"{i:05d}" for i in range(len(preds))] if names is None else list(names)
+    if lpips is None:
+        lpips = lpips_mod.load_lpips(lpips_net, lpips_weights)
+    lpips_name = lpips.name if isinstance(lpips, lpips_mod.LPIPS) else lpips_mod.metric_name(lpips_net)
+    flip_ok = flip_available() if flip else Missing("FLIP not requested")
+    psnrs: list[float] = []
+    ssims: list[float] = []
+    lps: list[float] = []
+    flips: list[float] = []
+    for i, (p, g) in enumerate(zip(preds, gts)):
+        _check_pair(p, g, i)
+        p, g = p.detach().float().cpu(), g.detach().float().cpu()
+        if quantize:
+            p, g = quantize_8bit(p), quantize_8bit(g)
+        psnrs.append(psnr(p, g))
+        ssims.append(ssim(p, g))
+        if isinstance(lpips, lpips_mod.LPIPS):
+            lps.append(lpips.distance(p, g))
+        if flip_ok is True:
+            flips.append(float(flip_error_map(g, p).mean()))
+    return ImageMetrics(names=names, psnr=psnrs, ssim=ssims,
+                        lpips=lps if isinstance(lpips, lpips_mod.LPIPS) else lpips,
+                        lpips_name=lpips_name, flip=flips if flip_ok is True else flip_ok,
+                        quantized=quantize)

