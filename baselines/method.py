@@ -1,0 +1,107 @@
+"""The common interface of a method (after nerfbaselines' ``Method`` protocol, ``_types.py``).
+
+What changed from nerfbaselines, and why:
+
+* Set-up is the constructor ``cls(scene, config, name=...)`` with a plain nested dict ``config``
+  (Hydra-free); the registry merges the method's fixed settings first and rejects conflicts.
+* A method declares what it needs from a scene as data (``SceneNeeds``: required and optional
+  scene capabilities, the same names as ``Scene.capabilities``); the registry checks a scene before
+  set-up, so "no SfM points" fails with a sentence instead of a KeyError deep inside a method.
+* ``render`` returns the renderer's ``RenderOutput`` (torch tensors + stats such as the k_max
+  coverage) instead of a dict of numpy arrays; evaluation quantises in one place.
+* ``train_step(step)`` runs exactly one step and insists on the step count it has done, so a
+  resumed run cannot silently restart its schedules; the harness owns the loop.
+* ``save``/``load`` restore everything a resumed run needs (optimiser moments, densification
+  statistics, random generators), not just the weights.
+* ``describe()`` gives the resolved config, the hyperparameter-set name and the stages the run
+  left out (for results.json and the run log).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Protocol, runtime_checkable
+
+from smgs.camera import Camera
+from smgs.data.scene import Scene
+from smgs.raster import RenderOutput
+
+CAPABILITIES: tuple[str, ...] = ("sfm_points", "background", "trajectory", "view_dependence")
+"""Scene capabilities a method can ask for (``Scene.capabilities``)."""
+
+
+@dataclass(frozen=True)
+class SceneNeeds:
+    """What a method needs from a scene: ``required`` capabilities must be present; ``optional``
+    ones are used when present (the method says in ``describe()['plan']`` what it does without
+    them)."""
+
+    required: frozenset[str] = frozenset()
+    optional: frozenset[str] = frozenset()
+
+    def __post_init__(self) -> None:
+        unknown = (set(self.required) | set(self.optional)) - set(CAPABILITIES)
+        if unknown:
+            raise ValueError(f"unknown scene capabilities {sorted(unknown)}; known: {', '.join(CAPABILITIES)}")
+
+    def check(self, scene: Scene, method: str = "method") -> list[str]:
+        """Raise if a required capability is missing; return notes on the missing optional ones."""
+        have = scene.capabilities
+        missing = sorted(set(self.required) - have)
+        if missing:
+            raise ValueError(f"{method} needs {', '.join(missing)} from the scene, but scene "
+                             f"{scene.name!r} has only {sorted(have) or 'none'}")
+        return [f"scene has no {c}" for c in sorted(set(self.optional) - have)]
+
+
+@runtime_checkable
+class Method(Protocol):
+    """A trainable, renderable scene representation. The harness owns the loop::
+
+        m = create_method("softmax_gs", scene, config)
+        for step in range(steps):
+            logs = m.train_step(step)
+        out = m.render(scene.test[0].camera)
+    """
+
+    needs: ClassVar[SceneNeeds]
+
+    def __init__(self, scene: Scene, config: dict[str, Any] | None = None, *, name: str | None = None) -> None:
+        ...
+
+    def train_step(self, step: int) -> dict[str, float]:
+        """Run one step; ``step`` = steps already done (0-based). Returns scalars to log."""
+        ...
+
+    def render(self, camera: Camera) -> RenderOutput:
+        """Render one camera (no gradients)."""
+        ...
+
+    def num_gaussians(self) -> int:
+        ...
+
+    def save(self, path: str | Path) -> None:
+        """Write a checkpoint directory that ``load`` resumes from exactly."""
+        ...
+
+    def load(self, path: str | Path) -> None:
+        """Restore a checkpoint written by ``save`` into this (set-up) method."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """{"method", "config", "hparams", "step", "plan": [what the run uses / leaves out]}."""
+        ...
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A registry entry: a name, the class as a lazily imported "module:Class" string (or the
+    class itself), settings fixed for this name (e.g. the render mode) and metadata."""
+
+    name: str
+    target: Any
+    fixed: dict[str, Any] = field(default_factory=dict)
+    paper_name: str | None = None
+    description: str = ""
+    source: str = "builtin"

@@ -1,0 +1,124 @@
+"""Methods by name, imported lazily.
+
+Lookup order: methods registered in this process (``register``), then the built-ins, then
+third-party plugins from the entry-point group ``smgs.methods``. A plugin declares, in its own
+package metadata (pyproject ``[project.entry-points."smgs.methods"]``)::
+
+    my_method = "my_pkg.module:MyMethod"      # a Method class, or a MethodSpec object
+
+Listing never imports a method's module (so a CPU machine can list a CUDA-only plugin); the module
+is imported when the method is created or its class is asked for.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib
+import warnings
+from importlib import metadata
+from typing import Any
+
+from baselines.method import Method, MethodSpec, SceneNeeds
+from smgs.data.scene import Scene
+
+ENTRY_POINT_GROUP = "smgs.methods"
+
+_SPLAT = "baselines.splatting:GaussianSplatting"
+
+BUILTINS: dict[str, MethodSpec] = {
+    "softmax_gs": MethodSpec("softmax_gs", _SPLAT, {"mode": "softmax_gs"}, "Softmax-GS",
+                             "GEF sharpness (α) + softmax competition (β, γ)"),
+    "3dgs": MethodSpec("3dgs", _SPLAT, {"mode": "3dgs"}, "3D GS", "vanilla 3D Gaussian splatting"),
+    "gef_only": MethodSpec("gef_only", _SPLAT, {"mode": "gef_only"}, "Sharp edge only",
+                           "GEF sharpness (α), no softmax competition"),
+    "softmax_only": MethodSpec("softmax_only", _SPLAT, {"mode": "softmax_only"}, "Softmax only",
+                               "softmax competition (β, γ), no GEF"),
+}
+
+_registered: dict[str, MethodSpec] = {}
+
+
+def register(spec: MethodSpec, overwrite: bool = False) -> None:
+    """Register a method in this process (tests, notebooks); overrides built-ins and plugins."""
+    if spec.name in _registered and not overwrite:
+        raise ValueError(f"method {spec.name!r} is already registered")
+    _registered[spec.name] = spec
+
+
+def unregister(name: str) -> None:
+    _registered.pop(name, None)
+
+
+def _entry_points() -> dict[str, metadata.EntryPoint]:
+    eps = {}
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in BUILTINS:
+            warnings.warn(f"plugin method {ep.name!r} ({ep.value}) is shadowed by the built-in of that name",
+                          stacklevel=3)
+            continue
+        eps.setdefault(ep.name, ep)
+    return eps
+
+
+def list_methods() -> list[str]:
+    """Every method name that can be created here (built-ins, registered, plugins), sorted."""
+    return sorted(set(BUILTINS) | set(_registered) | set(_entry_points()))
+
+
+def get_spec(name: str) -> MethodSpec:
+    if name in _registered:
+        return _registered[name]
+    if name in BUILTINS:
+        return BUILTINS[name]
+    ep = _entry_points().get(name)
+    if ep is not None:
+        obj = ep.load()
+        if isinstance(obj, MethodSpec):
+            return obj
+        dist = getattr(ep, "dist", None)
+        return MethodSpec(name, obj, source=f"plugin {dist.name if dist else ep.value}")
+    raise KeyError(f"unknown method {name!r}; registered methods: {', '.join(list_methods())}")
+
+
+def _import(target: str) -> Any:
+    module, _, attr = target.partition(":")
+    if not module or not attr:
+        raise ValueError(f"method target must be 'module:Class', got {target!r}")
+    obj = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def method_class(name: str) -> type:
+    spec = get_spec(name)
+    cls = _import(spec.target) if isinstance(spec.target, str) else spec.target
+    for attr in ("train_step", "render", "num_gaussians", "save", "load"):
+        if not callable(getattr(cls, attr, None)):
+            raise TypeError(f"method {name!r} ({cls!r}) does not implement Method.{attr}")
+    return cls
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The method's fixed settings merged with ``config``; a conflict is an error."""
+    spec = get_spec(name)
+    config = dict(config or {})
+    for k, v in spec.fixed.items():
+        if k in config and config[k] != v:
+            raise ValueError(f"method {name!r} fixes {k}={v!r}; the config asks for {config[k]!r}")
+    return _merge(config, spec.fixed)
+
+
+def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None) -> Method:
+    """Check the scene against the method's needs, then set the method up."""
+    cls = method_class(name)
+    needs: SceneNeeds = getattr(cls, "needs", SceneNeeds())
+    needs.check(scene, name)
+    return cls(scene, resolve_config(name, config), name=name)

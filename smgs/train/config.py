@@ -1,0 +1,299 @@
+"""Training configuration: plain dataclasses, buildable from nested dicts (Hydra configs at the edge
+turn into these with ``from_dict``).
+
+Two named hyperparameter sets (``HPARAMS``) pin the learning rates; the set's name is recorded with
+every run. Densification budgets are presets (``BUDGETS``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Literal, TypeVar
+
+T = TypeVar("T")
+
+
+# --------------------------------------------------------------------------------------------
+# Per-Gaussian parameters
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class ParamInit:
+    """Activation and initial (activated) value of one of the Softmax-GS parameters α, β, γ.
+
+    ``exp``: value = exp(raw) (> 0; Adam then moves the value by a roughly constant *ratio* per
+    step, so one learning rate serves values of any size). ``softplus``: value = log(1 + e^raw)
+    (>= 0 in the limit, additive steps once the value is large).
+    """
+
+    init: float
+    activation: Literal["exp", "softplus"] = "exp"
+
+
+@dataclass
+class GaussianConfig:
+    """How Gaussians are created. The paper gives neither activations nor initial values of α, β,
+    γ; these defaults are our choice:
+
+    * α (GEF sharpness) = exp(raw), init 1: the Gaussian kernel itself, i.e. vanilla 3DGS.
+    * β (softmax strength) = exp(raw), init 20. β's initial value decides the 2D fits: from 1 or 5
+      β can only grow ~x20 in 10K steps at the paper's rate 3e-4 (exp: ±lr per step in log space)
+      and ends too weak (20-21 dB on circle4); from 1000 it locks in a poor partition (18 dB);
+      from 20 Softmax-GS reaches ~28 dB (shared/research/findings.md).
+    * γ (depth decay) is stored relative to the scene: the renderer receives
+      γ_world = γ / extent, so s = exp(-γ·|Δd| / extent) and the decay length is extent/γ whatever
+      the scene's units. Init 1 (decay length = one scene extent; on the 2D patterns extent is 1).
+
+    ``init``: "auto" takes SfM points if the scene has them, else the 2D-pattern layout for a flat
+    scene, else ``n_random`` random points in a cube of side ``random_extent`` × extent (3DGS's
+    synthetic-scene init).
+    """
+
+    alpha: ParamInit = field(default_factory=lambda: ParamInit(1.0))
+    beta: ParamInit = field(default_factory=lambda: ParamInit(20.0))
+    gamma: ParamInit = field(default_factory=lambda: ParamInit(1.0))
+    init: Literal["auto", "sfm", "flat", "random"] = "auto"
+    init_opacity: float = 0.1            # 3DGS inverse_sigmoid(0.1)
+    max_sh_degree: int = 3               # flat scenes use 0 whatever this says
+    clamp_colors: bool = True            # 3DGS clamps SH colours at 0; see PATTERN preset
+    # 2D patterns: n_flat identical black Gaussians on a square grid `flat_spacing` apart (world
+    # units at depth `flat_depth`), isotropic scale `flat_scale`.
+    n_flat: int = 4
+    flat_depth: float = 1.0
+    flat_spacing: float = 0.05
+    flat_scale: float = 0.1
+    flat_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    n_random: int = 100_000
+    random_extent: float = 2.6           # 3DGS: points in [-1.3, 1.3]^3 (x extent here)
+
+
+# --------------------------------------------------------------------------------------------
+# Optimiser
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class OptimConfig:
+    """Adam per parameter group (eps 1e-15, 3DGS). Position lr is × scene extent and decays
+    log-linearly from ``means_lr`` to ``means_lr_final`` over ``means_lr_steps`` (None: the run's
+    step count)."""
+
+    name: str = "3dgs2023+softmaxgs_real"
+    means_lr: float = 1.6e-4
+    means_lr_final: float = 1.6e-6
+    means_lr_delay_mult: float = 0.01     # 3DGS passes no delay steps, so inactive by default
+    means_lr_delay_steps: int = 0
+    means_lr_steps: int | None = 30_000
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 2.5e-3 / 20
+    opacities_lr: float = 0.05            # the 2023 release (later releases: 0.025)
+    scales_lr: float = 5e-3
+    quats_lr: float = 1e-3
+    alpha_lr: float = 8e-4                # paper supp. Sec. 6, real scenes
+    beta_lr: float = 8e-3
+    gamma_lr: float = 4e-4
+    eps: float = 1e-15
+    betas: tuple[float, float] = (0.9, 0.999)
+
+
+HPARAMS: dict[str, OptimConfig] = {
+    # 3DGS 2023 (arguments/__init__.py@82bc469) + Softmax-GS supp. Sec. 6 rates for α, β, γ.
+    "3dgs2023+softmaxgs_real": OptimConfig(name="3dgs2023+softmaxgs_real"),
+    "3dgs2023+softmaxgs_patterns": OptimConfig(name="3dgs2023+softmaxgs_patterns", alpha_lr=3e-4,
+                                               beta_lr=3e-4, gamma_lr=2e-4, means_lr_steps=None),
+}
+
+
+def hparams(name: str) -> OptimConfig:
+    if name not in HPARAMS:
+        raise ValueError(f"unknown hyperparameter set {name!r}; known: {', '.join(HPARAMS)}")
+    return dataclasses.replace(HPARAMS[name])
+
+
+# --------------------------------------------------------------------------------------------
+# Loss
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class LossConfig:
+    """(1 − λ)·L1 + λ·(1 − SSIM) + λβ·Var_ray(β) + λγ·Var_ray(γ) (supp. Sec. 6).
+
+    The variances are taken per pixel over the first k_max splats, each weighted by
+    w = 1 / (1 + (d − d_front) / reg_depth_scale), our bounded form of the paper's "inverse
+    distance to the front-most Gaussian"; reg_depth_scale = ``reg_depth_scale_rel`` × extent, so a
+    splat 1% of the scene extent behind the front one counts half (default). ``reg_space="log"``
+    regularises log β and log γ (ratios: a β spread of 10..40 is as costly as 1..4, and the
+    term stays comparable to the photometric loss); "value" uses the activated values.
+    """
+
+    lambda_dssim: float = 0.2
+    lambda_beta_var: float = 0.01
+    lambda_gamma_var: float = 0.01
+    reg_depth_scale_rel: float = 0.01
+    reg_space: Literal["log", "value"] = "log"
+
+
+# --------------------------------------------------------------------------------------------
+# Densification
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class DensifyConfig:
+    """3DGS default densification (train.py / gaussian_model.py @82bc469; gsplat DefaultStrategy).
+
+    Steps are 1-based iteration numbers as in 3DGS. ``size_prune``: world-space pruning of
+    Gaussians whose largest scale exceeds size_prune × extent, together with screen size
+    > ``prune_screen_px``, both only after the first opacity reset (3DGS 0.1 and 20 px). The
+    Softmax-GS paper (Sec. 4.2) raises "the Gaussian size pruning threshold to 0.4": we read it as
+    this world-space 0.1 → 0.4 (relative to the scene extent), since GEF sharpening shrinks a
+    splat's effective size. ``size_prune=None`` takes the method's default (0.1 for 3dgs, 0.4 for
+    the Softmax-GS variants).
+    """
+
+    budget: str = "full"
+    enabled: bool = True
+    grow_grad2d: float = 2e-4
+    cap: int | None = None
+    percent_dense: float = 0.01
+    split_n: int = 2
+    prune_opacity: float = 0.005
+    size_prune: float | None = None
+    prune_screen_px: float = 20.0
+    refine_start: int = 500
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int | None = 3000       # None: no opacity reset (2D patterns)
+    reset_value: float = 0.01
+
+
+BUDGETS: dict[str, dict[str, Any]] = {
+    "full": dict(grow_grad2d=2e-4),       # 3DGS default
+    "light": dict(grow_grad2d=3e-4),      # Softmax-GS_light
+    "mini": dict(grow_grad2d=5e-4),       # Softmax-GS_mini
+    "5pct": dict(grow_grad2d=4e-3),       # 3DGS_5% / Softmax-GS_5%
+    "cap": dict(grow_grad2d=2e-4),        # a hard maximum count (set ``cap``)
+}
+
+
+def densify_config(budget: str = "full", **overrides: Any) -> DensifyConfig:
+    """A budget preset with overrides; ``cap`` requires a count."""
+    if budget not in BUDGETS:
+        raise ValueError(f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
+    cfg = DensifyConfig(budget=budget, **{**BUDGETS[budget], **overrides})
+    if budget == "cap" and not cfg.cap:
+        raise ValueError("budget 'cap' needs cap=<maximum number of Gaussians>")
+    return cfg
+
+
+# --------------------------------------------------------------------------------------------
+# Top level
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class TrainConfig:
+    """Everything one run of the splatting trainer needs. ``mode`` is the renderer mode
+    (3dgs / gef_only / softmax_only / softmax_gs)."""
+
+    mode: str = "softmax_gs"
+    steps: int = 30_000
+    seed: int = 0
+    k_max: int = 128
+    eq15: Literal["solved", "printed"] = "solved"
+    backend: str = "auto"
+    sh_degree_interval: int = 1000
+    random_background: bool = False
+    check_finite_every: int = 1
+    gaussians: GaussianConfig = field(default_factory=GaussianConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+
+
+def pattern_config(mode: str, cap: int, steps: int = 10_000, seed: int = 0) -> TrainConfig:
+    """The Table 1 set-up (paper Sec. 4.1, supp. Sec. 6): 4 black identical Gaussians at depth 1,
+    densification capped at ``cap``, no opacity reset (hence no size pruning), the pattern
+    learning rates, colours not clamped at 0 (a clamp left a dead opaque black splat,
+    findings.md), SH degree 0."""
+    return TrainConfig(
+        mode=mode, steps=steps, seed=seed,
+        gaussians=GaussianConfig(init="flat", max_sh_degree=0, clamp_colors=False),
+        optim=hparams("3dgs2023+softmaxgs_patterns"),
+        densify=densify_config("cap", cap=cap, reset_every=None, refine_stop=steps),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# dict <-> dataclass
+# --------------------------------------------------------------------------------------------
+
+def _is_dataclass_type(tp: Any) -> bool:
+    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+
+
+def _convert(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if _is_dataclass_type(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, dict):
+            raise TypeError(f"{where}: expected a mapping for {tp.__name__}, got {type(value).__name__}")
+        return from_dict(tp, value, _where=where)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        if len(args) == 1:
+            return _convert(args[0], value, where)
+        return value
+    if origin is tuple and isinstance(value, (list, tuple)):
+        return tuple(value)
+    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None, _where: str = "") -> T:
+    """Build a (nested) config dataclass from a plain dict (e.g. ``OmegaConf.to_container``).
+    Unknown keys are an error that lists the known ones; missing keys keep their defaults. A
+    ``TrainConfig`` dict may give ``optim`` as a hyperparameter-set name and ``densify`` may name
+    a ``budget``: the preset is applied first, then the other keys."""
+    data = dict(data or {})
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"{cls.__name__}{' at ' + _where if _where else ''}: unknown key(s) "
+                         f"{sorted(unknown)}; known: {sorted(names)}")
+    kwargs: dict[str, Any] = {}
+    for k, v in data.items():
+        where = f"{_where}.{k}" if _where else k
+        if cls is TrainConfig and k == "optim" and isinstance(v, (str, dict)):
+            v = {"name": v} if isinstance(v, str) else v
+            base = hparams(v["name"]) if v.get("name") in HPARAMS else OptimConfig()
+            kwargs[k] = dataclasses.replace(base, **{kk: _convert(hints_of(OptimConfig)[kk], vv, where)
+                                                     for kk, vv in v.items() if _check_key(OptimConfig, kk, where)})
+            continue
+        if cls is TrainConfig and k == "densify" and isinstance(v, dict):
+            extra = {kk: vv for kk, vv in v.items() if kk != "budget" and _check_key(DensifyConfig, kk, where)}
+            kwargs[k] = densify_config(v.get("budget", "full"), **extra)
+            continue
+        kwargs[k] = _convert(hints[k], v, where)
+    return cls(**kwargs)
+
+
+def hints_of(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _check_key(cls: type, key: str, where: str) -> bool:
+    names = {f.name for f in dataclasses.fields(cls)}
+    if key not in names:
+        raise ValueError(f"{cls.__name__} at {where}: unknown key {key!r}; known: {sorted(names)}")
+    return True
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict (JSON-serialisable) of a config dataclass."""
+    return dataclasses.asdict(cfg)

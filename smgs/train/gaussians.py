@@ -1,0 +1,174 @@
+"""Trainable Gaussians: raw parameters (the optimiser's leaves) and their activations.
+
+means: identity; scales: exp; opacities: sigmoid; quats: normalised by the renderer (wxyz);
+sh0 [N,1,3] and shN [N,K-1,3]: SH coefficients (3DGS ``features_dc`` / ``features_rest``);
+alpha, beta: exp or softplus (``ParamInit``); gamma: the same activation divided by the scene
+extent (scale-aware, see ``GaussianConfig``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from smgs.raster.sh import num_sh_bases, rgb_to_sh0
+from smgs.train.config import GaussianConfig, ParamInit
+
+PARAM_NAMES: tuple[str, ...] = ("means", "scales", "quats", "opacities", "sh0", "shN", "alpha", "beta",
+                                "gamma")
+"""Every parameter group, in a fixed order (optimiser groups, checkpoints, error messages)."""
+
+
+def _activate(raw: torch.Tensor, kind: str) -> torch.Tensor:
+    if kind == "exp":
+        return torch.exp(raw)
+    if kind == "softplus":
+        return F.softplus(raw)
+    raise ValueError(f"unknown activation {kind!r}; expected 'exp' or 'softplus'")
+
+
+def _inverse(value: float, kind: str) -> float:
+    if value <= 0:
+        raise ValueError(f"initial value must be > 0 for activation {kind!r}, got {value}")
+    if kind == "exp":
+        return math.log(value)
+    if kind == "softplus":
+        return value + math.log(-math.expm1(-value))   # log(e^v − 1), stable
+    raise ValueError(f"unknown activation {kind!r}; expected 'exp' or 'softplus'")
+
+
+def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
+    return torch.log(x / (1 - x))
+
+
+def knn_scale(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tensor:
+    """sqrt of the mean squared distance to the k nearest neighbours (3DGS ``distCUDA2``),
+    clamped at 1e-7 before the sqrt as 3DGS does; chunked so 100K points fit in memory."""
+    n = points.shape[0]
+    if n <= 1:
+        return torch.ones(n, dtype=points.dtype)
+    k = min(k, n - 1)
+    out = torch.empty(n, dtype=points.dtype)
+    p = points.double()
+    for i in range(0, n, chunk):
+        d2 = torch.cdist(p[i:i + chunk], p).square()
+        d2[torch.arange(d2.shape[0]), torch.arange(i, i + d2.shape[0])] = float("inf")
+        out[i:i + chunk] = d2.topk(k, largest=False).values.mean(1).clamp_min(1e-7).sqrt().to(points.dtype)
+    return out
+
+
+class Gaussians:
+    """The raw parameters of N Gaussians as a dict of leaf tensors (``params``) plus the
+    activation rules. The densification strategy and the optimiser edit ``params`` in place of
+    the dict (new tensors), so always read them through this object."""
+
+    def __init__(self, params: dict[str, torch.Tensor], cfg: GaussianConfig, extent: float,
+                 sh_degree: int) -> None:
+        missing = set(PARAM_NAMES) - set(params)
+        if missing:
+            raise ValueError(f"Gaussians: missing parameter groups {sorted(missing)}")
+        self.params = params
+        self.cfg = cfg
+        self.extent = float(extent)
+        self.max_sh_degree = int(sh_degree)
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_points(cls, points: torch.Tensor, colors: torch.Tensor, cfg: GaussianConfig, extent: float,
+                    sh_degree: int, scales: torch.Tensor | None = None) -> "Gaussians":
+        """3DGS initialisation: colour to the SH DC term, log kNN scale (isotropic), identity
+        rotation, opacity ``init_opacity``; α, β, γ at their configured initial values."""
+        points = points.float()
+        n = points.shape[0]
+        if scales is None:
+            scales = knn_scale(points)[:, None].expand(n, 3)
+        k = num_sh_bases(sh_degree)
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        p = {
+            "means": points.clone(),
+            "scales": torch.log(scales.float()).clone(),
+            "quats": quats,
+            "opacities": inverse_sigmoid(torch.full((n,), float(cfg.init_opacity))),
+            "sh0": rgb_to_sh0(colors.float())[:, None, :].clone(),
+            "shN": torch.zeros(n, k - 1, 3),
+            "alpha": torch.full((n,), _inverse(cfg.alpha.init, cfg.alpha.activation)),
+            "beta": torch.full((n,), _inverse(cfg.beta.init, cfg.beta.activation)),
+            "gamma": torch.full((n,), _inverse(cfg.gamma.init, cfg.gamma.activation)),
+        }
+        return cls({name: t.contiguous().requires_grad_(True) for name, t in p.items()}, cfg, extent,
+                   sh_degree)
+
+    # -- activated values --------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self.params["means"].shape[0]
+
+    @property
+    def means(self) -> torch.Tensor:
+        return self.params["means"]
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.params["scales"])
+
+    @property
+    def quats(self) -> torch.Tensor:
+        return self.params["quats"]
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.params["opacities"])
+
+    @property
+    def sh(self) -> torch.Tensor:
+        return torch.cat([self.params["sh0"], self.params["shN"]], dim=1)
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return _activate(self.params["alpha"], self.cfg.alpha.activation)
+
+    @property
+    def beta(self) -> torch.Tensor:
+        return _activate(self.params["beta"], self.cfg.beta.activation)
+
+    @property
+    def gamma_rel(self) -> torch.Tensor:
+        """γ relative to the scene extent (the configured, stored quantity)."""
+        return _activate(self.params["gamma"], self.cfg.gamma.activation)
+
+    @property
+    def gamma(self) -> torch.Tensor:
+        """γ in world units (1/length), as the renderer multiplies it with a depth difference."""
+        return self.gamma_rel / self.extent
+
+    # -- helpers for the strategy ------------------------------------------------------------
+    def raw(self, name: str) -> torch.Tensor:
+        return self.params[name]
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().clone() for k, v in self.params.items()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        missing = set(PARAM_NAMES) - set(state)
+        if missing:
+            raise ValueError(f"checkpoint lacks parameter groups {sorted(missing)}")
+        self.params = {k: state[k].detach().clone().contiguous().requires_grad_(True) for k in PARAM_NAMES}
+
+
+def flat_layout(n: int, depth: float, spacing: float, center: torch.Tensor | None = None,
+                rotation: torch.Tensor | None = None) -> torch.Tensor:
+    """n points on a centred square grid (row-major, ⌈√n⌉ per row) ``spacing`` apart, at ``depth``
+    in front of a camera (camera-to-world ``rotation``, ``center``): the paper's "identical
+    Gaussians slightly apart at depth 1" (supp. Sec. 6)."""
+    side = max(1, math.ceil(math.sqrt(n)))
+    idx = torch.arange(n)
+    gx = (idx % side).double() - (side - 1) / 2
+    gy = (idx // side).double() - (math.ceil(n / side) - 1) / 2
+    local = torch.stack([gx * spacing, gy * spacing, torch.full_like(gx, depth)], dim=1)
+    if rotation is not None:
+        local = local @ rotation.double().T
+    if center is not None:
+        local = local + center.double()
+    return local.float()

@@ -1,0 +1,136 @@
+"""Adam with one named parameter group per Gaussian attribute (3DGS ``training_setup``), the
+log-linear position schedule, and the row edits densification needs (append, keep, reset)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from smgs.train.config import OptimConfig
+from smgs.train.gaussians import PARAM_NAMES, Gaussians
+
+
+def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_steps: int = 0,
+             delay_mult: float = 1.0) -> float:
+    """3DGS ``get_expon_lr_func``: log-linear interpolation from lr_init (step 0) to lr_final
+    (step >= max_steps), with an optional sine-eased delay (inactive in 3DGS: no delay steps)."""
+    if step < 0 or (lr_init == 0.0 and lr_final == 0.0):
+        return 0.0
+    if delay_steps > 0:
+        delay = delay_mult + (1 - delay_mult) * math.sin(0.5 * math.pi * min(max(step / delay_steps, 0.0), 1.0))
+    else:
+        delay = 1.0
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    return delay * math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+
+
+def group_lrs(cfg: OptimConfig, extent: float) -> dict[str, float]:
+    """Initial learning rate of every group; positions are × the scene extent
+    (3DGS ``spatial_lr_scale``)."""
+    return {
+        "means": cfg.means_lr * extent,
+        "scales": cfg.scales_lr,
+        "quats": cfg.quats_lr,
+        "opacities": cfg.opacities_lr,
+        "sh0": cfg.sh0_lr,
+        "shN": cfg.shN_lr,
+        "alpha": cfg.alpha_lr,
+        "beta": cfg.beta_lr,
+        "gamma": cfg.gamma_lr,
+    }
+
+
+class GaussianOptimizer:
+    """torch Adam over the Gaussians' raw parameters, one group per name in ``PARAM_NAMES``.
+
+    ``trainable`` leaves out groups a mode does not use (α in 3dgs/softmax_only, β and γ in
+    3dgs/gef_only), so they never move and cost no optimiser work.
+    """
+
+    def __init__(self, gaussians: Gaussians, cfg: OptimConfig, extent: float, total_steps: int,
+                 trainable: tuple[str, ...] = PARAM_NAMES) -> None:
+        self.g = gaussians
+        self.cfg = cfg
+        self.extent = float(extent)
+        self.max_steps = cfg.means_lr_steps or total_steps
+        self.names = tuple(n for n in PARAM_NAMES if n in trainable)
+        lrs = group_lrs(cfg, extent)
+        self.opt = torch.optim.Adam(
+            [{"params": [gaussians.params[n]], "lr": lrs[n], "name": n} for n in self.names],
+            lr=0.0, betas=cfg.betas, eps=cfg.eps, foreach=True)
+        self._group = {g["name"]: g for g in self.opt.param_groups}
+
+    # -- stepping ----------------------------------------------------------------------------
+    def update_lr(self, iteration: int) -> float:
+        """Position lr at a 1-based iteration (3DGS ``update_learning_rate``); returns it."""
+        lr = expon_lr(iteration, self.cfg.means_lr * self.extent, self.cfg.means_lr_final * self.extent,
+                      self.max_steps, self.cfg.means_lr_delay_steps, self.cfg.means_lr_delay_mult)
+        if "means" in self._group:
+            self._group["means"]["lr"] = lr
+        return lr
+
+    def lr(self, name: str) -> float:
+        return float(self._group[name]["lr"])
+
+    def step(self) -> None:
+        self.opt.step()
+
+    def zero_grad(self) -> None:
+        for n in PARAM_NAMES:
+            self.g.params[n].grad = None
+
+    # -- row edits (densification) -----------------------------------------------------------
+    def _swap(self, name: str, new: torch.Tensor, state_fn) -> None:
+        """Replace group ``name``'s tensor by ``new`` (a fresh leaf) and its Adam moments by
+        ``state_fn(old_moment)``; groups without optimiser state (not trainable) just swap."""
+        old = self.g.params[name]
+        new = new.detach().contiguous().requires_grad_(name in self._group)
+        if name in self._group:
+            st = self.opt.state.pop(old, None)
+            if st is not None:
+                st = {k: (state_fn(v) if k in ("exp_avg", "exp_avg_sq") else v) for k, v in st.items()}
+                self.opt.state[new] = st
+            self._group[name]["params"][0] = new
+        self.g.params[name] = new
+
+    def append(self, extra: dict[str, torch.Tensor]) -> None:
+        """Append rows to every group; their Adam moments start at zero (3DGS
+        ``cat_tensors_to_optimizer``)."""
+        for name in PARAM_NAMES:
+            old = self.g.params[name].detach()
+            add = extra[name].to(old.dtype)
+            self._swap(name, torch.cat([old, add], 0),
+                       lambda m, add=add: torch.cat([m, torch.zeros((add.shape[0], *m.shape[1:]), dtype=m.dtype)], 0))
+
+    def keep(self, mask: torch.Tensor) -> None:
+        """Keep the rows where ``mask`` is true in every group and its Adam moments (3DGS
+        ``_prune_optimizer``)."""
+        for name in PARAM_NAMES:
+            self._swap(name, self.g.params[name].detach()[mask], lambda m: m[mask])
+
+    def reset(self, name: str, value: torch.Tensor) -> None:
+        """Replace a whole group's values and zero its Adam moments (3DGS
+        ``replace_tensor_to_optimizer``, used by the opacity reset)."""
+        self._swap(name, value, torch.zeros_like)
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Adam state by group name (positions in the torch state dict are by tensor, which a
+        restored run does not share)."""
+        out = {}
+        for name in self.names:
+            st = self.opt.state.get(self.g.params[name])
+            out[name] = None if st is None else {k: (v.clone() if torch.is_tensor(v) else v) for k, v in st.items()}
+        return {"groups": out, "lrs": {n: self.lr(n) for n in self.names}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Re-bind to the Gaussians' current tensors (call after ``Gaussians.load_state_dict``)."""
+        self.opt.state.clear()
+        for name in self.names:
+            p = self.g.params[name]
+            self._group[name]["params"][0] = p
+            self._group[name]["lr"] = state["lrs"][name]
+            st = state["groups"].get(name)
+            if st is not None:
+                self.opt.state[p] = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in st.items()}

@@ -1,0 +1,178 @@
+"""3DGS default densification (train.py / gaussian_model.py @82bc469), with budget presets and an
+optional hard cap on the count.
+
+Per step (1-based ``iteration`` < refine_stop): accumulate the norm of each visible Gaussian's
+screen-space mean gradient (in NDC units, i.e. the pixel gradient × (W/2, H/2), as 3DGS and
+gsplat measure it) and its largest screen radius. Every ``refine_every`` steps after
+``refine_start``: clone small Gaussians and split large ones whose mean gradient ≥ grow_grad2d,
+then prune the transparent ones (opacity < 0.005) and, after the first opacity reset, the big ones
+(screen radius > 20 px, or largest world scale > size_prune × extent). Opacity reset every
+``reset_every`` steps to min(opacity, 0.01).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from smgs.raster.projection import quat_to_rotmat
+from smgs.train.config import DensifyConfig
+from smgs.train.gaussians import PARAM_NAMES, Gaussians, inverse_sigmoid
+from smgs.train.optim import GaussianOptimizer
+
+SIZE_PRUNE_3DGS = 0.1
+"""3DGS prunes Gaussians whose largest scale exceeds 0.1 × the scene extent."""
+
+SIZE_PRUNE_SOFTMAX_GS = 0.4
+"""Softmax-GS raises that threshold to 0.4 × extent (paper Sec. 4.2)."""
+
+
+@dataclass
+class RefineEvent:
+    """What one refinement step did (0s when nothing happened)."""
+
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    reset: bool = False
+    capped: int = 0          # candidates dropped because of the cap
+
+
+class DefaultStrategy:
+    """Clone / split / prune / opacity reset over a ``Gaussians`` and its ``GaussianOptimizer``.
+
+    ``size_prune`` is the resolved world-space size threshold (relative to the extent).
+    """
+
+    def __init__(self, cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0) -> None:
+        self.cfg = cfg
+        self.extent = float(extent)
+        self.size_prune = float(size_prune)
+        self.gen = torch.Generator().manual_seed(int(seed) + 7919)
+        self.grad2d = torch.zeros(0)
+        self.count = torch.zeros(0)
+        self.max_radii = torch.zeros(0)
+
+    def _ensure(self, n: int) -> None:
+        if self.grad2d.shape[0] != n:
+            self._reset_stats(n)
+
+    def _reset_stats(self, n: int) -> None:
+        self.grad2d = torch.zeros(n)
+        self.count = torch.zeros(n)
+        self.max_radii = torch.zeros(n)
+
+    def active(self, iteration: int) -> bool:
+        return self.cfg.enabled and iteration < self.cfg.refine_stop
+
+    # -- per step ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def accumulate(self, n: int, ids: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor,
+                   width: int, height: int) -> None:
+        """Add one view's screen-space gradient norms (3DGS ``add_densification_stats``)."""
+        self._ensure(n)
+        if ids.numel() == 0 or means2d_grad is None:
+            return
+        g = means2d_grad.detach() * torch.tensor([width / 2.0, height / 2.0], dtype=means2d_grad.dtype)
+        vis = (radii > 0).all(dim=1)
+        ids = ids[vis]
+        self.grad2d.index_add_(0, ids, g[vis].norm(dim=1).to(self.grad2d.dtype))
+        self.count.index_add_(0, ids, torch.ones_like(ids, dtype=self.count.dtype))
+        # Largest screen radius; the renderer gives per-axis 3σ half extents, 3DGS the 3σ radius
+        # of the major axis (equal for axis-aligned splats, up to √2 larger for rotated ones).
+        r = radii[vis].max(dim=1).values.to(self.max_radii.dtype)
+        self.max_radii[ids] = torch.maximum(self.max_radii[ids], r)
+
+    @torch.no_grad()
+    def step(self, iteration: int, g: Gaussians, opt: GaussianOptimizer) -> RefineEvent:
+        """Refinement due at this 1-based iteration (call after ``accumulate`` and the optimiser
+        step)."""
+        ev = RefineEvent()
+        if not self.active(iteration):
+            return ev
+        c = self.cfg
+        if iteration > c.refine_start and iteration % c.refine_every == 0:
+            after_reset = c.reset_every is not None and iteration > c.reset_every
+            ev = self.densify_and_prune(g, opt, prune_big=after_reset)
+        if c.reset_every is not None and iteration % c.reset_every == 0:
+            self.reset_opacity(g, opt)
+            ev.reset = True
+        return ev
+
+    # -- operations --------------------------------------------------------------------------
+    @torch.no_grad()
+    def densify_and_prune(self, g: Gaussians, opt: GaussianOptimizer, prune_big: bool) -> RefineEvent:
+        c = self.cfg
+        n = len(g)
+        self._ensure(n)
+        grads = self.grad2d / self.count.clamp_min(1)
+        grads[self.count == 0] = 0.0
+        max_scale = g.scales.max(dim=1).values
+        small = max_scale <= c.percent_dense * self.extent
+        cand = grads >= c.grow_grad2d
+        capped = 0
+        if c.cap is not None:
+            room = max(c.cap - n, 0)
+            if int(cand.sum()) > room:
+                # Keep the candidates with the largest gradients; each adds one Gaussian net.
+                idx = torch.nonzero(cand).squeeze(1)
+                keep = idx[torch.argsort(grads[idx], descending=True, stable=True)[:room]]
+                capped = int(cand.sum()) - room
+                cand = torch.zeros_like(cand)
+                cand[keep] = True
+        clone = cand & small
+        split = cand & ~small
+        n_clone, n_split = int(clone.sum()), int(split.sum())
+
+        p = {k: v.detach() for k, v in g.params.items()}
+        extra = {k: [] for k in PARAM_NAMES}
+        if n_clone:
+            for k in PARAM_NAMES:
+                extra[k].append(p[k][clone])
+        if n_split:
+            k_n = c.split_n
+            sel = torch.nonzero(split).squeeze(1).repeat(k_n)
+            s = g.scales.detach()[sel]
+            samples = torch.randn(s.shape, generator=self.gen, dtype=s.dtype) * s
+            rot = quat_to_rotmat(p["quats"][sel])
+            for k in PARAM_NAMES:
+                if k == "means":
+                    extra[k].append((rot @ samples[:, :, None]).squeeze(-1) + p["means"][sel])
+                elif k == "scales":
+                    extra[k].append(torch.log(s / (0.8 * k_n)))
+                else:
+                    extra[k].append(p[k][sel])
+        if n_clone or n_split:
+            opt.append({k: torch.cat(v, 0) for k, v in extra.items()})
+        n_new = len(g) - n
+        # Originals of the split Gaussians go; so do transparent ones and, after the first
+        # reset, big ones (3DGS ``densify_and_prune``: max_radii2D is not grown for new rows).
+        drop = torch.cat([split, torch.zeros(n_new, dtype=torch.bool)])
+        drop |= g.opacities.detach() < c.prune_opacity
+        if prune_big:
+            radii = torch.cat([self.max_radii, torch.zeros(n_new)])
+            drop |= radii > c.prune_screen_px
+            drop |= g.scales.detach().max(dim=1).values > self.size_prune * self.extent
+        n_pruned = int(drop.sum()) - n_split
+        if bool(drop.any()):
+            opt.keep(~drop)
+        self._reset_stats(len(g))   # 3DGS zeroes every Gaussian's statistics after a refinement
+        return RefineEvent(cloned=n_clone, split=n_split, pruned=n_pruned, capped=capped)
+
+    @torch.no_grad()
+    def reset_opacity(self, g: Gaussians, opt: GaussianOptimizer) -> None:
+        """Opacities to min(opacity, reset_value); the opacity Adam moments restart at 0."""
+        new = torch.minimum(g.opacities.detach(), torch.tensor(self.cfg.reset_value))
+        opt.reset("opacities", inverse_sigmoid(new))
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"grad2d": self.grad2d.clone(), "count": self.count.clone(), "max_radii": self.max_radii.clone(),
+                "gen": self.gen.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.grad2d = state["grad2d"].clone()
+        self.count = state["count"].clone()
+        self.max_radii = state["max_radii"].clone()
+        self.gen.set_state(state["gen"])

@@ -1,0 +1,274 @@
+"""One Gaussian-splatting model being trained: Gaussians + optimiser + densification + loss.
+
+The four methods (3dgs, gef_only, softmax_only, softmax_gs) are this one class with the renderer's
+mode switch; ``baselines.splatting`` wraps it in the ``Method`` interface. The caller owns the loop:
+``train_step`` runs exactly one step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import torch
+
+from smgs.camera import Camera
+from smgs.data.scene import Scene
+from smgs.raster import RenderOutput, mode_flags, rasterize
+from smgs.raster.sh import num_sh_bases
+from smgs.train.config import TrainConfig, to_dict
+from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
+from smgs.train.loss import SSIMLoss, l1, ray_variance
+from smgs.train.optim import GaussianOptimizer
+from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
+
+
+class NonFiniteError(FloatingPointError):
+    """A loss or parameter became NaN/inf; ``group`` names the parameter group (or "loss")."""
+
+    def __init__(self, group: str, step: int, detail: str = "") -> None:
+        self.group, self.step = group, step
+        super().__init__(f"non-finite {'loss' if group == 'loss' else 'parameter group ' + repr(group)} "
+                         f"at step {step}{': ' + detail if detail else ''}")
+
+
+def trainable_groups(mode: str, max_sh_degree: int) -> tuple[str, ...]:
+    """Groups the optimiser moves: α only with GEF, β and γ only with softmax, SH rest only with
+    view dependence."""
+    use_gef, use_softmax = mode_flags(mode)
+    skip = set()
+    if not use_gef:
+        skip.add("alpha")
+    if not use_softmax:
+        skip |= {"beta", "gamma"}
+    if max_sh_degree == 0:
+        skip.add("shN")
+    return tuple(n for n in PARAM_NAMES if n not in skip)
+
+
+class Trainer:
+    """Trains Gaussians on a ``Scene`` with a ``TrainConfig``; deterministic for a given seed
+    (initialisation, view order and split samples use private generators, saved in
+    checkpoints)."""
+
+    def __init__(self, scene: Scene, cfg: TrainConfig) -> None:
+        mode_flags(cfg.mode)  # validates the mode
+        self.scene = scene
+        self.cfg = cfg
+        self.extent = float(scene.extent)
+        self.use_gef, self.use_softmax = mode_flags(cfg.mode)
+        self.plan: list[str] = []
+        gc = cfg.gaussians
+        self.max_sh_degree = 0 if scene.flat else gc.max_sh_degree
+        if scene.flat and gc.max_sh_degree:
+            self.plan.append("SH: degree 0 (flat scene, no view dependence)")
+        self.gen = torch.Generator().manual_seed(int(cfg.seed))
+        self.gaussians = self._init_gaussians()
+        self.optimizer = GaussianOptimizer(self.gaussians, cfg.optim, self.extent, cfg.steps,
+                                           trainable_groups(cfg.mode, self.max_sh_degree))
+        for n in PARAM_NAMES:   # unused groups get no gradients at all
+            if n not in self.optimizer.names:
+                self.gaussians.params[n].requires_grad_(False)
+        size_prune = cfg.densify.size_prune
+        if size_prune is None:
+            size_prune = SIZE_PRUNE_3DGS if cfg.mode == "3dgs" else SIZE_PRUNE_SOFTMAX_GS
+        self.strategy = DefaultStrategy(cfg.densify, self.extent, size_prune, seed=cfg.seed)
+        d = cfg.densify
+        if not d.enabled:
+            self.plan.append("densification: off (fixed count)")
+        else:
+            self.plan.append(f"densification: budget {d.budget} (grad {d.grow_grad2d:g}"
+                             f"{', cap ' + str(d.cap) if d.cap else ''}), steps {d.refine_start}-{d.refine_stop}"
+                             f" every {d.refine_every}")
+            self.plan.append("opacity reset: off; size pruning: off (only after a reset)" if d.reset_every is None
+                             else f"opacity reset every {d.reset_every}; size pruning {size_prune:g} x extent "
+                                  f"and {d.prune_screen_px:g} px after the first reset")
+        self.reg_on = self.use_softmax and (cfg.loss.lambda_beta_var > 0 or cfg.loss.lambda_gamma_var > 0)
+        self.reg_depth_scale = cfg.loss.reg_depth_scale_rel * self.extent
+        if not self.reg_on:
+            self.plan.append("beta/gamma variance regulariser: off" + (" (no softmax)" if not self.use_softmax else ""))
+        self.plan.append(f"hyperparameters: {cfg.optim.name}")
+        self.ssim = SSIMLoss()
+        self._targets = [v.rgb for v in scene.train]
+        self._stack: list[int] = []
+        self.step_count = 0          # steps completed
+        self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0, "optim": 0.0, "strategy": 0.0}
+        self.profile = False
+
+    # -- initialisation ----------------------------------------------------------------------
+    def _init_gaussians(self) -> Gaussians:
+        gc, scene = self.cfg.gaussians, self.scene
+        how = gc.init
+        if how == "auto":
+            how = "sfm" if scene.points is not None else ("flat" if scene.flat else "random")
+        if how == "sfm":
+            if scene.points is None:
+                raise ValueError(f"init 'sfm' needs SfM points, but scene {scene.name!r} has none")
+            cols = scene.point_colors if scene.point_colors is not None else torch.full_like(scene.points, 0.5)
+            self.plan.append(f"init: {scene.points.shape[0]} SfM points")
+            return Gaussians.from_points(scene.points, cols, gc, self.extent, self.max_sh_degree)
+        if how == "flat":
+            cam = scene.train[0].camera
+            c2w = cam.camtoworld.double()
+            pts = flat_layout(gc.n_flat, gc.flat_depth, gc.flat_spacing, c2w[:3, 3], c2w[:3, :3])
+            cols = torch.tensor(gc.flat_color, dtype=torch.float32).expand(gc.n_flat, 3)
+            self.plan.append(f"init: {gc.n_flat} identical Gaussians at depth {gc.flat_depth:g}, "
+                             f"{gc.flat_spacing:g} apart, scale {gc.flat_scale:g} (no SfM)")
+            return Gaussians.from_points(pts, cols, gc, self.extent, self.max_sh_degree,
+                                         scales=torch.full((gc.n_flat, 3), gc.flat_scale))
+        if how == "random":
+            n = gc.n_random
+            pts = (torch.rand(n, 3, generator=self.gen, dtype=torch.float64) - 0.5) * gc.random_extent * self.extent
+            cols = torch.rand(n, 3, generator=self.gen)
+            self.plan.append(f"init: {n} random points (no SfM)")
+            return Gaussians.from_points(pts.float(), cols, gc, self.extent, self.max_sh_degree)
+        raise ValueError(f"unknown init {gc.init!r}; expected auto, sfm, flat or random")
+
+    # -- rendering ---------------------------------------------------------------------------
+    def sh_degree(self, iteration: int | None = None) -> int:
+        """Active SH degree: +1 every ``sh_degree_interval`` iterations (3DGS ``oneupSHdegree``)."""
+        it = self.step_count if iteration is None else iteration
+        return min(it // max(self.cfg.sh_degree_interval, 1), self.max_sh_degree)
+
+    def reg_values(self) -> torch.Tensor:
+        g = self.gaussians
+        b, c = g.beta, g.gamma_rel
+        if self.cfg.loss.reg_space == "log":
+            b, c = torch.log(b), torch.log(c)
+        return torch.stack([b, c], dim=1)
+
+    def render(self, camera: Camera, *, with_reg: bool = False, sh_degree: int | None = None,
+               background: torch.Tensor | None = None) -> RenderOutput:
+        g = self.gaussians
+        deg = self.sh_degree() if sh_degree is None else sh_degree
+        sh = g.params["sh0"] if deg == 0 else g.sh[:, :num_sh_bases(deg)]
+        if background is None:
+            background = self.scene.background
+        return rasterize(
+            g.means, g.quats, g.scales, g.opacities, sh, camera,
+            alpha=g.alpha if self.use_gef else None,
+            beta=g.beta if self.use_softmax else None,
+            gamma=g.gamma if self.use_softmax else None,
+            mode=self.cfg.mode, k_max=self.cfg.k_max, sh_degree=deg, background=background,
+            backend=self.cfg.backend, eq15=self.cfg.eq15,
+            reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
+            clamp_sh_colors=self.cfg.gaussians.clamp_colors)
+
+    # -- one step ----------------------------------------------------------------------------
+    def _next_view(self) -> int:
+        """3DGS's view stack: a fresh random permutation whenever it runs empty."""
+        if not self._stack:
+            self._stack = torch.randperm(len(self.scene.train), generator=self.gen).tolist()
+        return self._stack.pop()
+
+    def check_finite(self, step: int, where: str = "") -> None:
+        params = self.gaussians.params
+        sums = torch.stack([params[n].detach().sum() for n in PARAM_NAMES])
+        if bool(torch.isfinite(sums).all()):
+            return
+        for n in PARAM_NAMES:
+            if not bool(torch.isfinite(params[n].detach()).all()):
+                bad = int((~torch.isfinite(params[n].detach())).sum())
+                raise NonFiniteError(n, step, f"{bad} non-finite value(s) {where}".strip())
+        raise NonFiniteError("unknown", step, where)  # sums overflowed without a bad entry
+
+    def train_step(self, step: int | None = None) -> dict[str, float]:
+        """Run one step. ``step`` is the number of steps already done (0-based; defaults to the
+        trainer's own count); schedules use the 1-based iteration step + 1 as 3DGS does."""
+        if step is not None and step != self.step_count:
+            raise ValueError(f"train_step({step}) but {self.step_count} steps are done; "
+                             "load the checkpoint of that step to resume")
+        cfg, g = self.cfg, self.gaussians
+        it = self.step_count + 1
+        prof = self.profile
+        t0 = time.perf_counter()
+        lr = self.optimizer.update_lr(it)
+        vi = self._next_view()
+        view = self.scene.train[vi]
+        target = self._targets[vi]
+        bg = None
+        if cfg.random_background:
+            bg = torch.rand(3, generator=self.gen)
+        out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
+        track = self.strategy.active(it)
+        means2d = out.extras["means2d"]
+        if track and means2d.requires_grad:
+            means2d.retain_grad()
+        t1 = time.perf_counter()
+        rgb = out.rgb
+        l1v = l1(rgb, target)
+        ssim_v = self.ssim(rgb, target)
+        lam = cfg.loss.lambda_dssim
+        loss = (1 - lam) * l1v + lam * (1 - ssim_v)
+        var_b = var_g = None
+        if self.reg_on and out.reg is not None:
+            var_b, var_g = ray_variance(out.reg)
+            loss = loss + cfg.loss.lambda_beta_var * var_b + cfg.loss.lambda_gamma_var * var_g
+        loss_v = float(loss.detach())
+        if not math.isfinite(loss_v):
+            self.check_finite(self.step_count, "before the step")
+            raise NonFiniteError("loss", self.step_count, f"loss = {loss_v}")
+        t2 = time.perf_counter()
+        loss.backward()
+        t3 = time.perf_counter()
+        self.optimizer.step()
+        if cfg.check_finite_every and it % cfg.check_finite_every == 0:
+            self.check_finite(self.step_count, "after the optimiser step")
+        t4 = time.perf_counter()
+        ev = None
+        if track:
+            self.strategy.accumulate(len(g), out.extras["ids"], means2d.grad, out.extras["radii"],
+                                     view.camera.width, view.camera.height)
+            ev = self.strategy.step(it, g, self.optimizer)
+        self.optimizer.zero_grad()
+        t5 = time.perf_counter()
+        if prof:
+            for k, a, b in (("render", t0, t1), ("loss", t1, t2), ("backward", t2, t3), ("optim", t3, t4),
+                            ("strategy", t4, t5)):
+                self.timings[k] += b - a
+        self.step_count += 1
+        with torch.no_grad():
+            mse = float(((rgb.detach() - target) ** 2).mean())
+        logs = {"loss": loss_v, "l1": float(l1v.detach()), "ssim": float(ssim_v.detach()),
+                "psnr": -10 * math.log10(mse) if mse > 0 else math.inf,
+                "num_gaussians": float(len(g)), "lr_means": lr}
+        if var_b is not None:
+            logs["var_beta"], logs["var_gamma"] = float(var_b.detach()), float(var_g.detach())
+        if ev is not None and (ev.cloned or ev.split or ev.pruned or ev.reset):
+            logs.update(cloned=float(ev.cloned), split=float(ev.split), pruned=float(ev.pruned),
+                        opacity_reset=float(ev.reset))
+        return logs
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "format": "smgs.train/1",
+            "step": self.step_count,
+            "config": to_dict(self.cfg),
+            "extent": self.extent,
+            "gaussians": self.gaussians.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "strategy": self.strategy.state_dict(),
+            "gen": self.gen.get_state(),
+            "view_stack": list(self._stack),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state.get("format") != "smgs.train/1":
+            raise ValueError(f"not an smgs.train checkpoint (format {state.get('format')!r})")
+        if state["config"]["mode"] != self.cfg.mode:
+            raise ValueError(f"checkpoint is for mode {state['config']['mode']!r}, this trainer is {self.cfg.mode!r}")
+        self.gaussians.load_state_dict(state["gaussians"])
+        for n in PARAM_NAMES:
+            if n not in self.optimizer.names:
+                self.gaussians.params[n].requires_grad_(False)
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.strategy.load_state_dict(state["strategy"])
+        self.gen.set_state(state["gen"])
+        self._stack = list(state["view_stack"])
+        self.step_count = int(state["step"])
+
+    def config_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self.cfg)

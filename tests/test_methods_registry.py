@@ -1,0 +1,134 @@
+"""The method registry: built-ins, unknown names, fixed settings, scene needs, entry-point plugins."""
+
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from baselines import (BUILTINS, ENTRY_POINT_GROUP, Method, MethodSpec, SceneNeeds, create_method,
+                       get_spec, list_methods, method_class, register, resolve_config, unregister)
+from smgs.data.patterns import pattern_scene
+
+PLUGIN = textwrap.dedent('''
+    import torch
+    from baselines.method import SceneNeeds
+    from smgs.raster import RenderOutput, RenderStats
+
+    class ConstantColour:
+        """A toy method: one trainable colour for the whole image."""
+        needs = SceneNeeds()
+
+        def __init__(self, scene, config=None, *, name=None):
+            self.scene, self.config = scene, dict(config or {})
+            self.colour = torch.zeros(3, requires_grad=True)
+            self.opt = torch.optim.Adam([self.colour], lr=float(self.config.get("lr", 0.1)))
+
+        def train_step(self, step):
+            v = self.scene.train[0]
+            loss = ((self.colour - v.rgb) ** 2).mean()
+            self.opt.zero_grad(); loss.backward(); self.opt.step()
+            return {"loss": float(loss.detach())}
+
+        def render(self, camera):
+            rgb = self.colour.detach().expand(camera.height, camera.width, 3)
+            z = torch.zeros(camera.height, camera.width)
+            return RenderOutput(rgb, z + 1, z, RenderStats(z.long(), 0, 0))
+
+        def num_gaussians(self):
+            return 0
+
+        def save(self, path):
+            pass
+
+        def load(self, path):
+            pass
+
+        def describe(self):
+            return {"method": "toy", "config": self.config, "hparams": "toy", "step": 0, "plan": []}
+''')
+
+
+@pytest.fixture
+def plugin(tmp_path, monkeypatch):
+    """A tiny installed distribution: a package plus a dist-info with an ``smgs.methods`` entry point."""
+    pkg = tmp_path / "smgs_toy_plugin"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(PLUGIN)
+    dist = tmp_path / "smgs_toy_plugin-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: smgs-toy-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(f"[{ENTRY_POINT_GROUP}]\ntoy = smgs_toy_plugin:ConstantColour\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "toy"
+    sys.modules.pop("smgs_toy_plugin", None)
+
+
+def test_builtins_are_one_class_with_a_mode_switch():
+    assert {"softmax_gs", "3dgs", "gef_only", "softmax_only"} <= set(list_methods())
+    classes = {method_class(n) for n in BUILTINS}
+    assert len(classes) == 1
+    assert {get_spec(n).fixed["mode"] for n in BUILTINS} == set(BUILTINS)
+    assert get_spec("softmax_gs").paper_name == "Softmax-GS"
+
+
+def test_unknown_method_lists_the_registered_ones():
+    with pytest.raises(KeyError) as e:
+        get_spec("softmax-gs")
+    msg = str(e.value)
+    assert "softmax-gs" in msg and all(n in msg for n in BUILTINS)
+
+
+def test_fixed_mode_cannot_be_overridden():
+    assert resolve_config("gef_only", {"steps": 5})["mode"] == "gef_only"
+    with pytest.raises(ValueError, match="fixes mode"):
+        resolve_config("gef_only", {"mode": "softmax_gs"})
+
+
+def test_scene_needs_are_checked():
+    scene = pattern_scene("circle4", 8)
+    needs = SceneNeeds(required=frozenset({"sfm_points"}), optional=frozenset({"background"}))
+    with pytest.raises(ValueError, match="needs sfm_points"):
+        needs.check(scene, "colmap_only")
+    assert SceneNeeds(optional=frozenset({"background"})).check(scene) == ["scene has no background"]
+    with pytest.raises(ValueError, match="unknown scene capabilities"):
+        SceneNeeds(required=frozenset({"lidar"}))
+
+
+def test_register_in_process():
+    spec = MethodSpec("softmax_gs_k8", "baselines.splatting:GaussianSplatting", {"mode": "softmax_gs", "k_max": 8})
+    register(spec)
+    try:
+        assert "softmax_gs_k8" in list_methods()
+        m = create_method("softmax_gs_k8", pattern_scene("circle4", 8), {"steps": 2})
+        assert m.config.k_max == 8 and isinstance(m, Method)
+        with pytest.raises(ValueError, match="already registered"):
+            register(spec)
+    finally:
+        unregister("softmax_gs_k8")
+
+
+def test_entry_point_plugin_is_listed_lazily_and_created(plugin):
+    assert plugin in list_methods()
+    assert "smgs_toy_plugin" not in sys.modules          # listing does not import the plugin
+    scene = pattern_scene("rect4", 8)
+    m = create_method(plugin, scene, {"lr": 0.2})
+    assert "smgs_toy_plugin" in sys.modules
+    assert isinstance(m, Method)
+    for s in range(30):
+        m.train_step(s)
+    out = m.render(scene.test[0].camera)
+    torch.testing.assert_close(out.rgb[0, 0], scene.train[0].rgb.mean((0, 1)), atol=0.05, rtol=0)
+    assert get_spec(plugin).source.startswith("plugin smgs-toy-plugin")
+
+
+def test_plugin_cannot_shadow_a_builtin(tmp_path, monkeypatch):
+    dist = tmp_path / "evil-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: evil\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(f"[{ENTRY_POINT_GROUP}]\n3dgs = nowhere:Nothing\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.warns(UserWarning, match="shadowed"):
+        names = list_methods()
+    assert names.count("3dgs") == 1
+    assert method_class("3dgs").__name__ == "GaussianSplatting"

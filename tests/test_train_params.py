@@ -1,0 +1,98 @@
+"""Gaussians: activations, initial values, γ scaling; config dicts and presets."""
+
+import math
+
+import pytest
+import torch
+
+from smgs.train import (BUDGETS, HPARAMS, GaussianConfig, ParamInit, TrainConfig, densify_config,
+                        from_dict, hparams, pattern_config, to_dict)
+from smgs.train.gaussians import Gaussians, flat_layout, knn_scale
+
+
+def _gaussians(cfg=None, extent=4.0, n=5):
+    pts = torch.randn(n, 3)
+    return Gaussians.from_points(pts, torch.rand(n, 3), cfg or GaussianConfig(), extent, sh_degree=3)
+
+
+def test_default_activations_and_initial_values():
+    g = _gaussians(extent=4.0)
+    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 20; γ = 1 relative to the extent.
+    torch.testing.assert_close(g.alpha, torch.ones(5))
+    torch.testing.assert_close(g.beta, torch.full((5,), 20.0))
+    torch.testing.assert_close(g.gamma_rel, torch.ones(5))
+    torch.testing.assert_close(g.gamma, torch.full((5,), 0.25))     # γ_world = γ / extent
+    torch.testing.assert_close(g.opacities, torch.full((5,), 0.1))
+    torch.testing.assert_close(g.scales, torch.exp(g.params["scales"]))
+    assert g.params["shN"].shape == (5, 15, 3)
+    # exp activations: the raw values are logs, so Adam steps are ratios
+    torch.testing.assert_close(g.params["beta"], torch.full((5,), math.log(20.0)))
+    assert g.params["quats"][:, 0].eq(1).all() and g.params["quats"][:, 1:].eq(0).all()
+
+
+def test_gamma_is_scale_aware():
+    """Scaling a scene (positions and extent) by k leaves γ·|Δd| unchanged."""
+    for k in (0.5, 3.0):
+        g1, gk = _gaussians(extent=2.0), _gaussians(extent=2.0 * k)
+        dd = 0.3
+        torch.testing.assert_close(g1.gamma * dd, gk.gamma * (dd * k))
+
+
+def test_softplus_activation_and_colour_init():
+    cfg = GaussianConfig(alpha=ParamInit(2.5, "softplus"), beta=ParamInit(0.3, "softplus"))
+    g = _gaussians(cfg)
+    torch.testing.assert_close(g.alpha, torch.full((5,), 2.5))
+    torch.testing.assert_close(g.beta, torch.full((5,), 0.3))
+    cols = torch.tensor([[0.0, 0.5, 1.0]])
+    g = Gaussians.from_points(torch.zeros(1, 3), cols, GaussianConfig(), 1.0, sh_degree=0)
+    from smgs.raster.sh import SH_C0
+    torch.testing.assert_close(SH_C0 * g.params["sh0"][:, 0] + 0.5, cols)
+    with pytest.raises(ValueError, match="must be > 0"):
+        _gaussians(GaussianConfig(beta=ParamInit(0.0)))
+
+
+def test_knn_scale_and_flat_layout():
+    pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]])
+    s = knn_scale(pts)
+    expect0 = math.sqrt((1 + 4 + 9) / 3)
+    assert abs(float(s[0]) - expect0) < 1e-5
+    p = flat_layout(4, depth=1.0, spacing=0.1)
+    assert torch.allclose(p[:, 2], torch.ones(4))
+    assert torch.allclose(p[:, :2].mean(0), torch.zeros(2), atol=1e-7)
+    d = torch.cdist(p, p) + torch.eye(4)
+    assert torch.isclose(d.min(), torch.tensor(0.1))
+
+
+def test_hparam_sets_are_named_and_distinct():
+    real, pat = hparams("3dgs2023+softmaxgs_real"), hparams("3dgs2023+softmaxgs_patterns")
+    assert (real.alpha_lr, real.beta_lr, real.gamma_lr) == (8e-4, 8e-3, 4e-4)
+    assert (pat.alpha_lr, pat.beta_lr, pat.gamma_lr) == (3e-4, 3e-4, 2e-4)
+    for h in (real, pat):     # 3DGS 2023 release
+        assert (h.means_lr, h.means_lr_final, h.opacities_lr, h.scales_lr, h.quats_lr, h.eps) == \
+            (1.6e-4, 1.6e-6, 0.05, 5e-3, 1e-3, 1e-15)
+        assert h.sh0_lr == 2.5e-3 and math.isclose(h.shN_lr, 2.5e-3 / 20)
+    assert set(HPARAMS) == {real.name, pat.name}
+    with pytest.raises(ValueError, match="known"):
+        hparams("nope")
+
+
+def test_budget_presets():
+    assert {k: v["grow_grad2d"] for k, v in BUDGETS.items()} == \
+        {"full": 2e-4, "light": 3e-4, "mini": 5e-4, "5pct": 4e-3, "cap": 2e-4}
+    assert densify_config("cap", cap=16).cap == 16
+    with pytest.raises(ValueError, match="cap"):
+        densify_config("cap")
+    with pytest.raises(ValueError, match="unknown budget"):
+        densify_config("huge")
+
+
+def test_config_from_dict_roundtrip_and_errors():
+    cfg = pattern_config("gef_only", cap=16, steps=100, seed=3)
+    again = from_dict(TrainConfig, to_dict(cfg))
+    assert again == cfg
+    c = from_dict(TrainConfig, {"mode": "3dgs", "optim": "3dgs2023+softmaxgs_patterns",
+                                "densify": {"budget": "mini"}, "gaussians": {"beta": {"init": 5}}})
+    assert c.optim.beta_lr == 3e-4 and c.densify.grow_grad2d == 5e-4
+    assert c.gaussians.beta.init == 5.0 and isinstance(c.gaussians.beta.init, float)
+    with pytest.raises(ValueError, match="unknown key"):
+        from_dict(TrainConfig, {"loss": {"lamda_dssim": 0.1}})
