@@ -1,0 +1,136 @@
+"""Run one cell of an experiment: load the scene, train, evaluate, write results.json.
+
+``run_cell`` is the function every executor calls. It never raises for a failing run: the error is
+recorded in the run's results.json (status "failed") and the sweep goes on. A KeyboardInterrupt
+does propagate; the run then resumes from its last checkpoint next time.
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+import subprocess
+import traceback
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from protocols.results import (RunResult, atomic_write_bytes, atomic_write_text, config_hash,
+                               read_result, write_result)
+
+CHECKPOINT = "checkpoint.pt"
+LOG = "log.txt"
+# Keys of a cell's config that do not change its result (where and how it runs).
+VOLATILE = ("force", "executor", "report", "out_dir", "data_root", "on_missing", "grid",
+            "experiment_name", "checkpoint_every")
+
+
+def result_hash(cfg: dict) -> str:
+    return config_hash({k: v for k, v in cfg.items() if k not in VOLATILE})
+
+
+def _logger(run_dir: Path) -> logging.Logger:
+    log = logging.getLogger(f"smgs.run.{run_dir}")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    if not log.handlers:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        fh = logging.FileHandler(run_dir / LOG)
+        fh.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
+        log.addHandler(fh)
+    return log
+
+
+def versions(backend: str, device: str) -> dict[str, str]:
+    import numpy
+
+    import smgs
+
+    return {"smgs": smgs.__version__, "torch": torch.__version__, "numpy": numpy.__version__,
+            "python": platform.python_version(), "backend": backend, "device": device,
+            "cpu": _cpu_model(), "git": _git_revision()}
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _git_revision() -> str:
+    try:
+        root = Path(__file__).resolve().parent.parent
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
+                              text=True, timeout=5).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _identity(cfg: dict) -> dict[str, Any]:
+    return dict(method=cfg["method"]["name"], dataset=cfg["dataset"]["name"], scene=str(cfg["scene"]),
+                budget=cfg["budget"]["name"], seed=int(cfg["seed"]), preset=cfg["protocol"]["name"])
+
+
+def run_cell(payload: dict) -> dict:
+    """payload: {"key", "run_dir", "config" (resolved dict)}. Returns a small summary."""
+    cfg: dict = payload["config"]
+    run_dir = Path(payload["run_dir"])
+    h = result_hash(cfg)
+    res_path = run_dir / "results.json"
+    if res_path.exists() and not cfg.get("force", False):
+        try:
+            old = read_result(res_path)
+            if old.status == "ok" and old.config_hash == h:
+                return {"key": payload["key"], "status": "ok", "skipped": True}
+        except ValueError:
+            pass  # unreadable: run again
+    run_dir.mkdir(parents=True, exist_ok=True)
+    log = _logger(run_dir)
+    atomic_write_text(run_dir / "config.yaml", _yaml(cfg))
+    base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
+    try:
+        from protocols.train_loop import train_and_evaluate
+        result = train_and_evaluate(cfg, run_dir, base, log)
+    except KeyboardInterrupt:
+        log.info("interrupted; rerun to resume from the last checkpoint")
+        raise
+    except Exception as e:  # recorded; the sweep goes on
+        from protocols.datasets import DatasetMissing
+
+        tb = traceback.format_exc()
+        log.error(tb)
+        skipped = isinstance(e, DatasetMissing)
+        base.status = "skipped" if skipped else "failed"
+        base.error = f"{type(e).__name__}: {e}"
+        base.versions = versions(cfg.get("backend", "auto"), "cpu")
+        write_result(run_dir, base)
+        return {"key": payload["key"], "status": base.status, "error": base.error}
+    write_result(run_dir, result)
+    return {"key": payload["key"], "status": "ok", "psnr": result.metrics.get("psnr")}
+
+
+def _yaml(cfg: dict) -> str:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_yaml(OmegaConf.create(cfg))
+
+
+def save_checkpoint(run_dir: Path, state: dict) -> None:
+    import io
+
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write_bytes(run_dir / CHECKPOINT, buf.getvalue())
+
+
+def load_checkpoint(run_dir: Path) -> dict | None:
+    p = run_dir / CHECKPOINT
+    if not p.exists():
+        return None
+    return torch.load(p, map_location="cpu", weights_only=False)
+

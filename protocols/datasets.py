@@ -1,0 +1,60 @@
+"""From a cell's config to a Scene: the one place the runner turns dataset config into a loader call."""
+
+from __future__ import annotations
+
+from smgs.data.scene import DatasetNotFoundError, Scene
+
+DatasetMissing = DatasetNotFoundError
+
+# frames between consecutive test cameras in the consistency video (paper supp. Sec. 7)
+TRAJECTORY_BETWEEN = 128
+
+
+def _rule(cfg: dict) -> tuple[str, int | None]:
+    """The resolution rule name and, for the cpu preset, its maximum width."""
+    proto = cfg["protocol"]
+    rule = cfg["dataset"].get("rule") or proto.get("resolution") or "paper"
+    return str(rule), (int(proto["max_width"]) if rule == "cpu" and proto.get("max_width") else None)
+
+
+def load_scene_for(cfg: dict) -> Scene:
+    """The scene of a cell (dataset group config + the cell's scene name + protocol)."""
+    from smgs.data.datasets import load_scene
+
+    ds = cfg["dataset"]
+    kind = ds["kind"]
+    scene = str(cfg["scene"])
+    test_every = int(cfg["protocol"].get("test_every", 8))
+    traj = TRAJECTORY_BETWEEN if cfg.get("eval", {}).get("consistency") else None
+    if kind == "pattern":
+        from smgs.data.patterns import pattern_scene
+
+        return pattern_scene(scene, int(ds.get("size", 128)))
+    if kind == "procedural":
+        return load_scene("procedural", n_views=int(ds["n_views"]), size=(int(ds["width"]), int(ds["height"])),
+                          test_every=test_every)
+    rule, max_width = _rule(cfg)
+    if ds.get("path"):
+        return load_scene(kind, path=ds["path"], rule=rule, max_width=max_width, test_every=test_every,
+                          trajectory_between=traj)
+    return load_scene(ds["name"], scene=scene, data_root=cfg.get("data_root"), rule=rule,
+                      max_width=max_width, test_every=test_every, trajectory_between=traj)
+
+
+def check_available(cfg: dict) -> str | None:
+    """None if the cell's data is there, else a sentence naming the folder looked in and the layout."""
+    ds = cfg["dataset"]
+    if ds["kind"] in ("pattern", "procedural"):
+        return None
+    from pathlib import Path
+
+    if ds.get("path"):
+        p = Path(ds["path"])
+        return None if p.exists() else f"{ds['name']}: {p} does not exist"
+    from smgs.data.datasets import get_dataset, resolve_data_root
+
+    try:
+        get_dataset(ds["name"]).scene_dir(resolve_data_root(cfg.get("data_root")), str(cfg["scene"]))
+    except DatasetNotFoundError as e:
+        return str(e)
+    return None

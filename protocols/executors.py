@@ -1,0 +1,93 @@
+"""Where the cells of a grid run: in this process, in local worker processes, or on SLURM.
+
+Every executor calls the same picklable function on the same payloads, so the results tree is the
+same whichever ran it. A cell records its own failure in its results.json; an executor only has
+to survive a worker that died without writing one.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+import traceback
+from typing import Any, Callable
+
+from tqdm import tqdm
+
+Payload = dict[str, Any]
+Summary = dict[str, Any]
+
+KINDS = ("sequential", "local", "slurm", "submitit_local")
+
+
+def _died(payload: Payload, err: BaseException | str) -> Summary:
+    msg = err if isinstance(err, str) else f"{type(err).__name__}: {err}"
+    return {"key": payload.get("key"), "status": "failed", "error": f"worker died: {msg}"}
+
+
+def _init_worker(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str = "sequential",
+            workers: int = 2, slurm: dict | None = None, folder: str | None = None) -> list[Summary]:
+    """Run ``fn`` on every payload and return their summaries in payload order."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown executor {kind!r}; expected one of {', '.join(KINDS)}")
+    bar = tqdm(total=len(payloads), desc="grid", unit="run", position=0, leave=True,
+               disable=len(payloads) <= 1)
+    out: list[Summary | None] = [None] * len(payloads)
+    try:
+        if kind == "sequential":
+            for i, p in enumerate(payloads):
+                out[i] = fn(p)
+                bar.update(1)
+                bar.set_postfix_str(f"{p.get('key')}: {out[i]['status']}")
+        elif kind == "local":
+            threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+            ctx = mp.get_context("spawn")  # no forked torch/OpenMP state
+            with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                        initargs=(threads,)) as pool:
+                futs = {pool.submit(fn, p): i for i, p in enumerate(payloads)}
+                for f in cf.as_completed(futs):
+                    i = futs[f]
+                    try:
+                        out[i] = f.result()
+                    except Exception as e:  # the cell could not even record its failure
+                        out[i] = _died(payloads[i], e)
+                    bar.update(1)
+        else:
+            out = _submitit(fn, payloads, kind, slurm or {}, folder or "submitit", bar)
+    finally:
+        bar.close()
+    return [o if o is not None else _died(p, "no result") for o, p in zip(out, payloads)]
+
+
+def _submitit(fn, payloads, kind, slurm: dict, folder: str, bar) -> list[Summary]:
+    import submitit
+
+    if kind == "submitit_local":
+        ex = submitit.LocalExecutor(folder=folder)
+        ex.update_parameters(timeout_min=int(slurm.get("timeout_min", 60)))
+    else:
+        ex = submitit.AutoExecutor(folder=folder, cluster="slurm")
+        params = {k: v for k, v in slurm.items() if v is not None and k != "folder"}
+        partition = params.pop("partition", None)
+        ex.update_parameters(**{("slurm_" + k if k not in ("timeout_min", "gpus_per_node",
+                                                           "cpus_per_task", "mem_gb") else k): v
+                                for k, v in params.items()})
+        if partition:
+            ex.update_parameters(slurm_partition=partition)
+    jobs = ex.map_array(fn, payloads)
+    out: list[Summary] = []
+    for job, p in zip(jobs, payloads):
+        try:
+            out.append(job.result())
+        except Exception as e:
+            tb = traceback.format_exception_only(type(e), e)[-1].strip()
+            out.append(_died(p, tb))
+        bar.update(1)
+    return out

@@ -1,0 +1,51 @@
+"""Expansion of an experiment into cells (method × dataset/scene × budget × seed)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One run of an experiment grid."""
+
+    method: str
+    dataset: str
+    scene: str
+    budget: str
+    seed: int
+
+    @property
+    def key(self) -> str:
+        """The run's directory below the experiment's out_dir."""
+        return f"{self.dataset}/{self.scene}/{self.method}/{self.budget}/seed{self.seed}"
+
+    def overrides(self) -> list[str]:
+        """Hydra overrides that compose this cell's config."""
+        return [f"method={self.method}", f"dataset={self.dataset}", f"budget={self.budget}",
+                f"seed={self.seed}", f"scene={self.scene}"]
+
+
+def expand(methods: list[str], datasets: dict[str, list[str]], budgets: list[str],
+           seeds: list[int], scenes: list[str] | None = None) -> list[Cell]:
+    """Cells in a stable order: dataset, scene, budget, method, seed (so a partial sweep has every
+    method of a scene before the next scene). ``datasets`` maps a dataset name to its scenes;
+    ``scenes`` restricts them (a name no dataset has is an error)."""
+    if scenes is not None:
+        known = {s for ss in datasets.values() for s in ss}
+        unknown = [s for s in scenes if s not in known]
+        if unknown:
+            raise ValueError(f"grid.scenes names {unknown}, which no dataset of the grid has "
+                             f"(scenes: {sorted(known)})")
+    cells = []
+    for ds, ds_scenes in datasets.items():
+        for sc in ds_scenes:
+            if scenes is not None and sc not in scenes:
+                continue
+            for b in budgets:
+                for m in methods:
+                    for s in seeds:
+                        cells.append(Cell(m, ds, sc, b, int(s)))
+    if len(set(cells)) != len(cells):
+        raise ValueError("the grid lists a method, dataset, budget or seed twice")
+    return cells

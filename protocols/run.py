@@ -1,0 +1,111 @@
+"""``python -m protocols.run +experiment=NAME [key=value ...] [--force]``
+
+Expands the experiment's grid (methods × datasets/scenes × budgets × seeds), composes each cell's
+config from the Hydra groups in configs/, runs the cells with the chosen executor, and builds the
+report. Finished cells with the same config hash are skipped (``force=true`` or ``--force`` redoes
+them); a failing cell is recorded and the sweep goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from protocols.grid import Cell, expand
+
+log = logging.getLogger("smgs.protocols")
+
+
+def _cell_config(cell: Cell, overrides: list[str]) -> dict:
+    from hydra import compose
+
+    # the cell's groups override the experiment's defaults; the user's key=value come first so a
+    # grid entry always wins for method/dataset/budget/seed
+    cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith(
+        ("method=", "dataset=", "budget=", "seed=", "scene="))] + cell.overrides())
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
+    from hydra import compose
+
+    cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith("dataset=")]
+                  + [f"dataset={dataset}"])
+    scenes = OmegaConf.to_container(cfg.dataset, resolve=True).get("scenes")
+    if not scenes:
+        raise ValueError(f"dataset {dataset!r} lists no scenes (configs/dataset/{dataset}.yaml: scenes)")
+    return [str(s) for s in scenes]
+
+
+def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
+    """The grid's cells and their payloads (resolved configs and run directories)."""
+    grid = cfg.grid
+    datasets = {str(d): _scenes_of(str(d), overrides) for d in grid.datasets}
+    cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets],
+                   [int(s) for s in grid.seeds],
+                   None if grid.scenes is None else [str(s) for s in grid.scenes])
+    out = Path(cfg.out_dir)
+    payloads = []
+    for c in cells:
+        ccfg = _cell_config(c, overrides)
+        payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg})
+    return cells, payloads
+
+
+def _preflight(payloads: list[dict]) -> None:
+    """With on_missing=error, a missing dataset stops the experiment before anything runs."""
+    from protocols.datasets import check_available
+
+    problems = []
+    for p in payloads:
+        if p["config"].get("on_missing", "error") == "error":
+            err = check_available(p["config"])
+            if err and err not in problems:
+                problems.append(err)
+    if problems:
+        raise SystemExit("missing data (set on_missing=skip to run what exists):\n  " + "\n  ".join(problems))
+
+
+@hydra.main(config_path="../configs", config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    from protocols.cell import run_cell
+    from protocols.executors import execute
+
+    overrides = list(HydraConfig.get().overrides.task)
+    cells, payloads = plan(cfg, overrides)
+    _preflight(payloads)
+    ex = cfg.executor
+    print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)
+    summaries = execute(run_cell, payloads, kind=str(ex.kind), workers=int(ex.workers),
+                        slurm=OmegaConf.to_container(ex.slurm, resolve=True), folder=str(ex.slurm.folder))
+    counts: dict[str, int] = {}
+    for s in summaries:
+        k = "skipped (finished before)" if s.get("skipped") else s["status"]
+        counts[k] = counts.get(k, 0) + 1
+        if s["status"] != "ok":
+            print(f"  {s['key']}: {s['status']}: {s.get('error')}", flush=True)
+    print("runs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())), flush=True)
+    if cfg.report:
+        try:
+            from reports.build import build_report
+        except ImportError as e:  # reports are optional for a run; say so
+            print(f"report not built: {e}", flush=True)
+        else:
+            path = build_report(Path(cfg.out_dir))
+            print(f"report: {path}", flush=True)
+
+
+def cli() -> None:
+    # `--force` is accepted as a flag as well as the Hydra override force=true
+    if "--force" in sys.argv:
+        sys.argv = [a for a in sys.argv if a != "--force"] + ["force=true"]
+    main()
+
+
+if __name__ == "__main__":
+    cli()

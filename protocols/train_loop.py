@@ -1,0 +1,205 @@
+"""The harness's loop for one run: train with checkpoints and intermediate evaluations, then the
+final evaluation (8-bit metrics, renders, FPS, memory, diagnostics)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+from tqdm import tqdm
+
+from baselines.registry import create_method
+from protocols.datasets import load_scene_for
+from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
+from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
+from smgs.metrics.result import Missing
+from smgs.metrics.timing import TrainClock, device_name, measure_render_fps, track_peak_memory
+from smgs.raster import mode_flags
+
+POINTER = "checkpoint.json"
+
+
+def method_config(cfg: dict) -> dict[str, Any]:
+    """The TrainConfig dict of a cell: the method's settings, then the dataset's overrides (e.g.
+    the 2D-pattern set-up), then the protocol's step count, the budget and the seed."""
+    from baselines.registry import _merge
+
+    mc = _merge(cfg["method"].get("train") or {}, cfg["dataset"].get("train") or {})
+    budget = cfg["budget"]
+    densify = dict(mc.get("densify") or {})
+    densify.update(budget=budget.get("preset", budget["name"]), grow_grad2d=budget["densify_grad_threshold"])
+    if budget.get("cap") is not None:
+        densify["cap"] = int(budget["cap"])
+    steps = int(cfg["dataset"].get("steps") or cfg["protocol"]["steps"])
+    mc.update(steps=steps, seed=int(cfg["seed"]), backend=cfg.get("backend", "auto"), densify=densify)
+    return mc
+
+
+def eval_steps(steps: int, fractions: list[float]) -> list[int]:
+    return sorted({max(1, min(steps, math.ceil(f * steps))) for f in fractions})
+
+
+def _save_checkpoint(run_dir: Path, method, progress: dict) -> None:
+    """Checkpoint directory first, then an atomic pointer to it: an interrupted save leaves the
+    previous checkpoint in force."""
+    name = f"ckpt-{progress['step']:07d}"
+    d = run_dir / name
+    if d.exists():
+        shutil.rmtree(d)
+    method.save(d)
+    atomic_write_text(d / "progress.json", json.dumps(progress))
+    atomic_write_text(run_dir / POINTER, json.dumps({"dir": name}))
+    for old in run_dir.glob("ckpt-*"):
+        if old.name != name:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def _load_checkpoint(run_dir: Path, method) -> dict | None:
+    ptr = run_dir / POINTER
+    if not ptr.exists():
+        return None
+    d = run_dir / json.loads(ptr.read_text())["dir"]
+    method.load(d)
+    return json.loads((d / "progress.json").read_text())
+
+
+def _render_rgb(method, camera) -> torch.Tensor:
+    return method.render(camera).rgb.clamp(0, 1)
+
+
+def quick_psnr(method, views) -> float:
+    """Mean PSNR of the test views on 8-bit renders (the intermediate evaluations)."""
+    with torch.no_grad():
+        return float(np.mean([psnr(quantize_8bit(_render_rgb(method, v.camera)), quantize_8bit(v.rgb))
+                              for v in views]))
+
+
+def _save_png(path: Path, img: torch.Tensor) -> None:
+    import io
+
+    buf = io.BytesIO()
+    Image.fromarray((img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _quantiles(t: torch.Tensor) -> dict[str, float]:
+    t = t.detach().float().flatten()
+    q = torch.quantile(t, torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]))
+    return dict(zip(("p05", "p25", "p50", "p75", "p95"), map(float, q))) | {"mean": float(t.mean())}
+
+
+def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging.Logger) -> RunResult:
+    scene = load_scene_for(cfg)
+    result.data = dict(scene.meta)
+    name = cfg["method"]["name"]
+    method = create_method(name, scene, method_config(cfg))
+    desc = method.describe()
+    result.hparams = str(desc.get("hparams", ""))
+    steps = int(desc["config"]["steps"]) if "config" in desc and "steps" in desc["config"] else \
+        int(method_config(cfg)["steps"])
+    ev = cfg["eval"]
+    left_out = list(desc.get("plan", []))
+    if "trajectory" not in scene.capabilities:
+        left_out.append("view consistency: off (the scene has no video trajectory)")
+    elif not ev.get("consistency"):
+        left_out.append("view consistency: off (eval.consistency=false)")
+    for line in left_out:
+        log.info("plan: %s", line)
+
+    clock = TrainClock("cpu")
+    progress = _load_checkpoint(run_dir, method) or {"step": 0, "train_seconds": 0.0, "curve": []}
+    start = int(progress["step"])
+    clock.seconds = float(progress["train_seconds"])
+    curve = [CurvePoint(**c) for c in progress["curve"]]
+    if start:
+        log.info("resumed from step %d (%.1f s of training)", start, clock.seconds)
+    checks = set(eval_steps(steps, list(ev["fractions"])))
+    every = int(cfg.get("checkpoint_every") or 0)
+    bar = tqdm(total=steps, initial=start, desc=f"{cfg['scene']}/{name}", unit="step", leave=False,
+               position=1, dynamic_ncols=True)
+    last_psnr = float("nan")
+    with track_peak_memory("cpu") as peak:
+        for step in range(start, steps):
+            with clock.training():
+                logs = method.train_step(step)
+            done = step + 1
+            if done in checks:
+                with clock.exclude("eval"):
+                    last_psnr = quick_psnr(method, scene.test)
+                curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
+                log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
+                         method.num_gaussians())
+            if every and done % every == 0 and done < steps:
+                with clock.exclude("checkpoint"):
+                    _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
+                                                       "curve": [c.__dict__ for c in curve]})
+            bar.update(1)
+            if done % 10 == 0 or done == steps:
+                bar.set_postfix(loss=f"{logs.get('loss', float('nan')):.4f}", psnr=f"{last_psnr:.2f}",
+                                gs=method.num_gaussians())
+    bar.close()
+    result.steps = steps
+    result.train_seconds = clock.seconds
+    result.curve = curve
+    result.num_gaussians = method.num_gaussians()
+
+    # final evaluation on the test views, on 8-bit renders
+    renders, gts, names, within = [], [], [], []
+    with torch.no_grad():
+        for v in scene.test:
+            out = method.render(v.camera)
+            renders.append(out.rgb.clamp(0, 1))
+            gts.append(v.rgb)
+            names.append(v.name)
+            within.append(out.stats.frac_within_kmax)
+    if ev.get("save_renders", True):
+        for n, img in zip(names, renders):
+            _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
+    m = evaluate_images(renders, gts, names, lpips_net=ev.get("lpips_net", "vgg"),
+                        lpips_weights=ev.get("lpips_weights"), flip=bool(ev.get("flip", True)))
+    means = m.means()
+    result.metrics = {"psnr": means["psnr"], "ssim": means["ssim"]}
+    result.per_view = {"name": names, "psnr": m.psnr, "ssim": m.ssim}
+    for key, values, mean in (("lpips", m.lpips, means[m.lpips_name]), ("flip", m.flip, means[m.flip_name])):
+        if isinstance(values, Missing):
+            result.missing[key] = values.reason
+        else:
+            result.metrics[key] = float(mean)
+            result.per_view[key] = values
+    result.lpips_net = m.lpips_name
+    fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
+                             warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)))
+    result.render_fps = fps.fps
+    result.render_device = fps.device
+    result.peak_memory_mb = peak.mib
+    backend = cfg.get("backend", "auto")
+    from smgs.raster import resolve_backend
+
+    result.versions = _versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
+    diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
+                            "eval_seconds": clock.excluded.get("eval", 0.0)}
+    mode = desc.get("config", {}).get("mode", name)
+    if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
+        diag["frac_within_kmax"] = float(np.mean(within))
+    params = getattr(method, "parameter_values", None)
+    if callable(params):
+        diag["params"] = {k: _quantiles(v) for k, v in params().items()}
+    result.diagnostics = diag
+    result.status = "ok"
+    # the final state is kept as the run's checkpoint (rendering later needs no retraining)
+    _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
+                                       "curve": [c.__dict__ for c in curve]})
+    return result
+
+
+def _versions(backend: str, device: str) -> dict[str, str]:
+    from protocols.cell import versions
+
+    return versions(backend, device)
