@@ -21,13 +21,24 @@ from protocols.grid import Cell, expand
 log = logging.getLogger("smgs.protocols")
 
 
+CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "scene=", "method.name=")
+
+
+def _method_overrides(method: str) -> list[str]:
+    """A method with a yaml in configs/method/ is composed from it; a plugin-only method from
+    configs/method/plugin.yaml with its name."""
+    if (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
+        return [f"method={method}"]
+    return ["method=plugin", f"method.name={method}"]
+
+
 def _cell_config(cell: Cell, overrides: list[str]) -> dict:
     from hydra import compose
 
-    # the cell's groups override the experiment's defaults; the user's key=value come first so a
-    # grid entry always wins for method/dataset/budget/seed
-    cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith(
-        ("method=", "dataset=", "budget=", "seed=", "scene="))] + cell.overrides())
+    # the user's key=value apply to every cell; the cell's own groups always win
+    cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith(GRID_KEYS)]
+                  + _method_overrides(cell.method) + cell.overrides()[1:])
     return OmegaConf.to_container(cfg, resolve=True)
 
 
@@ -44,7 +55,11 @@ def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
 
 def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
     """The grid's cells and their payloads (resolved configs and run directories)."""
+    from baselines.registry import get_spec
+
     grid = cfg.grid
+    for m in grid.methods:
+        get_spec(str(m))  # an unknown method stops here, naming the registered ones
     datasets = {str(d): _scenes_of(str(d), overrides) for d in grid.datasets}
     cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets],
                    [int(s) for s in grid.seeds],
@@ -71,12 +86,10 @@ def _preflight(payloads: list[dict]) -> None:
         raise SystemExit("missing data (set on_missing=skip to run what exists):\n  " + "\n  ".join(problems))
 
 
-@hydra.main(config_path="../configs", config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
+def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.cell import run_cell
     from protocols.executors import execute
 
-    overrides = list(HydraConfig.get().overrides.task)
     cells, payloads = plan(cfg, overrides)
     _preflight(payloads)
     ex = cfg.executor
@@ -91,13 +104,25 @@ def main(cfg: DictConfig) -> None:
             print(f"  {s['key']}: {s['status']}: {s.get('error')}", flush=True)
     print("runs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())), flush=True)
     if cfg.report:
-        try:
-            from reports.build import build_report
-        except ImportError as e:  # reports are optional for a run; say so
-            print(f"report not built: {e}", flush=True)
-        else:
-            path = build_report(Path(cfg.out_dir))
-            print(f"report: {path}", flush=True)
+        from reports.build import build_report
+
+        path = build_report(Path(cfg.out_dir))
+        print(f"report: {path}", flush=True)
+    return summaries
+
+
+def run_experiment(overrides: list[str]) -> list[dict]:
+    """Run an experiment from Hydra overrides (e.g. ["+experiment=smoke", "protocol.steps=50"])
+    without the command line: for tests and notebooks."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return _run(compose(config_name="config", overrides=overrides), list(overrides))
+
+
+@hydra.main(config_path="../configs", config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    _run(cfg, list(HydraConfig.get().overrides.task))
 
 
 def cli() -> None:

@@ -1,0 +1,116 @@
+"""The protocol runner on tiny pattern fits: skip, failure isolation, resume, clear errors."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from baselines.method import MethodSpec
+from baselines.registry import register, unregister
+from baselines.splatting import GaussianSplatting
+from protocols.results import read_result
+from protocols.run import run_experiment
+
+REPO = Path(__file__).resolve().parent.parent
+
+TINY = ["+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]", "grid.scenes=[circle4]",
+        "dataset.size=16", "dataset.steps=12", "report=false", "eval.fps_repeats=1", "eval.flip=false"]
+
+
+def tiny(tmp_path, *extra):
+    return TINY + [f"out_dir={tmp_path}", *extra]
+
+
+class Boom(GaussianSplatting):
+    def train_step(self, step):
+        raise RuntimeError("boom at step %d" % step)
+
+
+class InterruptOnce(GaussianSplatting):
+    calls: list = []
+    interrupt_at = 7
+
+    def train_step(self, step):
+        InterruptOnce.calls.append(step)
+        if step == InterruptOnce.interrupt_at and InterruptOnce.interrupt_at is not None:
+            InterruptOnce.interrupt_at = None
+            raise KeyboardInterrupt
+        return super().train_step(step)
+
+
+@pytest.fixture
+def plugin_methods():
+    register(MethodSpec("boom", Boom, {"mode": "3dgs"}))
+    register(MethodSpec("interrupt_once", InterruptOnce, {"mode": "3dgs"}))
+    yield
+    unregister("boom")
+    unregister("interrupt_once")
+
+
+def test_runs_then_skips_finished_cells_and_force_redoes(tmp_path):
+    s1 = run_experiment(tiny(tmp_path, "grid.methods=[3dgs,softmax_gs]"))
+    assert [s["status"] for s in s1] == ["ok", "ok"] and not any(s.get("skipped") for s in s1)
+    res = read_result(tmp_path / "patterns/circle4/softmax_gs/cap4/seed0/results.json")
+    assert res.status == "ok" and res.steps == 12 and res.num_gaussians == 4
+    assert res.per_view["psnr"] and res.curve[-1].step == 12
+    assert "lpips" in res.missing or "lpips" in res.metrics
+    s2 = run_experiment(tiny(tmp_path, "grid.methods=[3dgs,softmax_gs]"))
+    assert all(s.get("skipped") for s in s2)
+    # a changed config is not the same result: it runs again
+    s3 = run_experiment(tiny(tmp_path, "grid.methods=[3dgs]", "method.train.k_max=64"))
+    assert not s3[0].get("skipped")
+    s4 = run_experiment(tiny(tmp_path, "grid.methods=[3dgs]", "method.train.k_max=64", "force=true"))
+    assert not s4[0].get("skipped")
+
+
+def test_a_failing_cell_is_recorded_and_the_others_finish(tmp_path, plugin_methods):
+    s = run_experiment(tiny(tmp_path, "grid.methods=[boom,3dgs]"))
+    by = {x["key"].split("/")[2]: x for x in s}
+    assert by["boom"]["status"] == "failed" and "boom at step 0" in by["boom"]["error"]
+    assert by["3dgs"]["status"] == "ok"
+    r = read_result(tmp_path / "patterns/circle4/boom/cap4/seed0/results.json")
+    assert r.status == "failed" and "RuntimeError: boom at step 0" in r.error
+    assert "Traceback" in (tmp_path / "patterns/circle4/boom/cap4/seed0/log.txt").read_text()
+
+
+def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, plugin_methods):
+    InterruptOnce.calls.clear()
+    InterruptOnce.interrupt_at = 7
+    args = tiny(tmp_path, "grid.methods=[interrupt_once]", "checkpoint_every=5")
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(args)
+    run_dir = tmp_path / "patterns/circle4/interrupt_once/cap4/seed0"
+    assert not (run_dir / "results.json").exists()
+    assert json.loads((run_dir / "checkpoint.json").read_text())["dir"] == "ckpt-0000005"
+    InterruptOnce.calls.clear()
+    s = run_experiment(args)
+    assert s[0]["status"] == "ok"
+    assert InterruptOnce.calls == list(range(5, 12))  # resumed after step 5, not from 0
+    assert "resumed from step 5" in (run_dir / "log.txt").read_text()
+    r = read_result(run_dir / "results.json")
+    assert r.steps == 12 and [c.step for c in r.curve] == [2, 3, 6, 12]
+
+
+def test_unknown_method_names_the_registered_ones(tmp_path):
+    with pytest.raises(KeyError, match="registered methods: .*softmax_gs"):
+        run_experiment(tiny(tmp_path, "grid.methods=[softmax_gz]"))
+
+
+def test_missing_dataset_names_the_folder_and_skip_records_it(tmp_path):
+    args = ["+experiment=full", "grid.methods=[3dgs]", "grid.datasets=[tandt]", f"data_root={tmp_path}/nope",
+            f"out_dir={tmp_path}/runs", "report=false"]
+    with pytest.raises(SystemExit, match="nope"):
+        run_experiment(args)
+    s = run_experiment(args + ["on_missing=skip"])
+    assert [x["status"] for x in s] == ["skipped", "skipped"]
+    r = read_result(tmp_path / "runs/tandt/train/3dgs/full/seed0/results.json")
+    assert r.status == "skipped" and "nope" in r.error
+
+
+def test_config_typo_is_a_clear_error_on_the_command_line():
+    p = subprocess.run([sys.executable, "-m", "protocols.run", "+experiment=smoke", "protocol.stpes=5"],
+                       cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0
+    assert "stpes" in p.stderr and "not in struct" in p.stderr
