@@ -2,8 +2,8 @@
 
 from baselines.method import CAPABILITIES, Method, MethodSpec, SceneNeeds
 from baselines.registry import (BUILTINS, ENTRY_POINT_GROUP, create_method, get_spec, list_methods,
-                                method_class, register, resolve_config, unregister)
+                                merge_config, method_class, register, resolve_config, unregister)
 
 __all__ = ["Method", "MethodSpec", "SceneNeeds", "CAPABILITIES", "BUILTINS", "ENTRY_POINT_GROUP",
-           "create_method", "get_spec", "list_methods", "method_class", "register", "unregister",
+           "create_method", "get_spec", "list_methods", "merge_config", "method_class", "register", "unregister",
            "resolve_config"]

@@ -99,11 +99,15 @@ def method_class(name: str) -> type:
     return cls
 
 
-def _merge(base: dict, over: dict) -> dict:
+def merge_config(base: dict, over: dict) -> dict:
+    """Deep merge of nested config dicts (``over`` wins; neither input is modified)."""
     out = copy.deepcopy(base)
     for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+        out[k] = merge_config(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
     return out
+
+
+_merge = merge_config  # the old private name (protocols.train_loop imports it)
 
 
 def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -113,7 +117,7 @@ def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str,
     for k, v in spec.fixed.items():
         if k in config and config[k] != v:
             raise ValueError(f"method {name!r} fixes {k}={v!r}; the config asks for {config[k]!r}")
-    return _merge(config, spec.fixed)
+    return merge_config(config, spec.fixed)
 
 
 def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None) -> Method:

@@ -60,10 +60,12 @@ class GaussianConfig:
     max_sh_degree: int = 3               # flat scenes use 0 whatever this says
     clamp_colors: bool = True            # 3DGS clamps SH colours at 0; see PATTERN preset
     # 2D patterns: n_flat identical black Gaussians on a square grid `flat_spacing` apart (world
-    # units at depth `flat_depth`), isotropic scale `flat_scale`.
+    # units at depth `flat_depth`), each moved in x, y by a seeded uniform jitter of ±flat_jitter ×
+    # spacing (the seed's only effect on a 4-Gaussian fit), isotropic scale `flat_scale`.
     n_flat: int = 4
     flat_depth: float = 1.0
     flat_spacing: float = 0.05
+    flat_jitter: float = 0.25
     flat_scale: float = 0.1
     flat_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
     n_random: int = 100_000

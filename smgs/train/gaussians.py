@@ -158,14 +158,19 @@ class Gaussians:
 
 
 def flat_layout(n: int, depth: float, spacing: float, center: torch.Tensor | None = None,
-                rotation: torch.Tensor | None = None) -> torch.Tensor:
+                rotation: torch.Tensor | None = None, jitter: float = 0.0,
+                generator: torch.Generator | None = None) -> torch.Tensor:
     """n points on a centred square grid (row-major, ⌈√n⌉ per row) ``spacing`` apart, at ``depth``
     in front of a camera (camera-to-world ``rotation``, ``center``): the paper's "identical
-    Gaussians slightly apart at depth 1" (supp. Sec. 6)."""
+    Gaussians slightly apart at depth 1" (supp. Sec. 6). ``jitter`` moves each point in x and y by
+    a uniform offset in ±jitter·spacing (drawn from ``generator``)."""
     side = max(1, math.ceil(math.sqrt(n)))
     idx = torch.arange(n)
     gx = (idx % side).double() - (side - 1) / 2
     gy = (idx // side).double() - (math.ceil(n / side) - 1) / 2
+    if jitter:
+        off = (torch.rand(n, 2, generator=generator, dtype=torch.float64) * 2 - 1) * jitter
+        gx, gy = gx + off[:, 0], gy + off[:, 1]
     local = torch.stack([gx * spacing, gy * spacing, torch.full_like(gx, depth)], dim=1)
     if rotation is not None:
         local = local @ rotation.double().T

@@ -112,10 +112,11 @@ class Trainer:
         if how == "flat":
             cam = scene.train[0].camera
             c2w = cam.camtoworld.double()
-            pts = flat_layout(gc.n_flat, gc.flat_depth, gc.flat_spacing, c2w[:3, 3], c2w[:3, :3])
+            pts = flat_layout(gc.n_flat, gc.flat_depth, gc.flat_spacing, c2w[:3, 3], c2w[:3, :3],
+                              jitter=gc.flat_jitter, generator=self.gen)
             cols = torch.tensor(gc.flat_color, dtype=torch.float32).expand(gc.n_flat, 3)
             self.plan.append(f"init: {gc.n_flat} identical Gaussians at depth {gc.flat_depth:g}, "
-                             f"{gc.flat_spacing:g} apart, scale {gc.flat_scale:g} (no SfM)")
+                             f"{gc.flat_spacing:g} apart (jitter ±{gc.flat_jitter:g}), scale {gc.flat_scale:g} (no SfM)")
             return Gaussians.from_points(pts, cols, gc, self.extent, self.max_sh_degree,
                                          scales=torch.full((gc.n_flat, 3), gc.flat_scale))
         if how == "random":
@@ -211,7 +212,8 @@ class Trainer:
             self.check_finite(self.step_count, "before the step")
             raise NonFiniteError("loss", self.step_count, f"loss = {loss_v}")
         t2 = time.perf_counter()
-        loss.backward()
+        if loss.requires_grad:      # no Gaussian visible in this view: nothing to learn from it
+            loss.backward()
         t3 = time.perf_counter()
         self.optimizer.step()
         if cfg.check_finite_every and it % cfg.check_finite_every == 0:
