@@ -74,11 +74,11 @@ def _render_rgb(method, camera) -> torch.Tensor:
     return method.render(camera).rgb.clamp(0, 1)
 
 
-def quick_psnr(method, views) -> float:
-    """Mean PSNR of the test views on 8-bit renders (the intermediate evaluations)."""
+def quick_psnr(method, views, quantize: bool = True) -> float:
+    """Mean PSNR of the test views (the intermediate evaluations), on 8-bit renders by default."""
+    q = quantize_8bit if quantize else (lambda x: x)
     with torch.no_grad():
-        return float(np.mean([psnr(quantize_8bit(_render_rgb(method, v.camera)), quantize_8bit(v.rgb))
-                              for v in views]))
+        return float(np.mean([psnr(q(_render_rgb(method, v.camera)), q(v.rgb)) for v in views]))
 
 
 def _save_png(path: Path, img: torch.Tensor) -> None:
@@ -132,7 +132,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             done = step + 1
             if done in checks:
                 with clock.exclude("eval"):
-                    last_psnr = quick_psnr(method, scene.test)
+                    last_psnr = quick_psnr(method, scene.test, bool(ev.get("quantize", True)))
                 curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
                 log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
                          method.num_gaussians())
@@ -163,7 +163,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         for n, img in zip(names, renders):
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
     m = evaluate_images(renders, gts, names, lpips_net=ev.get("lpips_net", "vgg"),
-                        lpips_weights=ev.get("lpips_weights"), flip=bool(ev.get("flip", True)))
+                        lpips_weights=ev.get("lpips_weights"), flip=bool(ev.get("flip", True)),
+                        quantize=bool(ev.get("quantize", True)))
     means = m.means()
     result.metrics = {"psnr": means["psnr"], "ssim": means["ssim"]}
     result.per_view = {"name": names, "psnr": m.psnr, "ssim": m.ssim}
@@ -184,6 +185,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
 
     result.versions = _versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
+                            "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0)}
     mode = desc.get("config", {}).get("mode", name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
