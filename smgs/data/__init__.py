@@ -1,5 +1,32 @@
-"""Scenes and their loaders."""
+"""Scenes and their loaders.
 
-from smgs.data.scene import Scene, View, camera_extent
+``load_scene`` is the one entry point for the protocol runner; the loaders are importable on their
+own (``smgs.data.colmap.load_colmap``, ``smgs.data.transforms.load_transforms``,
+``smgs.data.procedural.make_procedural_scene``). Heavy imports (pycolmap, OpenCV) happen on use.
+"""
 
-__all__ = ["Scene", "View", "camera_extent"]
+from smgs.data.datasets import (DATA_ROOT_ENV, DATASETS, GENERIC_RULES, DatasetSpec, get_dataset,
+                                load_dataset_scene, load_scene, resolve_data_root)
+from smgs.data.images import ResolutionRule
+from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
+                             camera_extent, split_every)
+
+
+def __getattr__(name: str):
+    # Lazy re-exports so that ``import smgs.data`` does not import pycolmap or OpenCV.
+    if name == "load_colmap":
+        from smgs.data.colmap import load_colmap
+        return load_colmap
+    if name == "load_transforms":
+        from smgs.data.transforms import load_transforms
+        return load_transforms
+    if name == "make_procedural_scene":
+        from smgs.data.procedural import make_procedural_scene
+        return make_procedural_scene
+    raise AttributeError(f"module 'smgs.data' has no attribute {name!r}")
+
+
+__all__ = ["Scene", "View", "camera_extent", "split_every", "ResolutionRule",
+           "DatasetSpec", "DATASETS", "GENERIC_RULES", "DATA_ROOT_ENV", "get_dataset", "resolve_data_root",
+           "load_dataset_scene", "load_scene", "load_colmap", "load_transforms", "make_procedural_scene",
+           "DatasetNotFoundError", "SceneFormatError", "MissingImageError"]

@@ -13,6 +13,19 @@ import torch
 from smgs.camera import Camera
 
 
+class DatasetNotFoundError(FileNotFoundError):
+    """A scene or dataset folder is absent (a run with ``on_missing=skip`` may skip the cell)."""
+
+
+class SceneFormatError(ValueError):
+    """A scene exists but cannot be used as it is: a corrupt or incomplete model, an unsupported
+    camera, inconsistent image sizes. The message names the file and the fix."""
+
+
+class MissingImageError(FileNotFoundError):
+    """An image the camera model lists is not on disk (a broken scene, never skipped silently)."""
+
+
 @dataclass
 class View:
     """One posed image. ``image`` is uint8 [H, W, 3] (8-bit, as stored on disk); ``rgb`` gives
@@ -75,3 +88,22 @@ def camera_extent(cameras: list[Camera]) -> float:
     centers = torch.stack([c.center.double() for c in cameras])
     d = (centers - centers.mean(0)).norm(dim=1).max().item()
     return 1.1 * d if d > 0 else 1.0
+
+
+def split_every(names: list[str], test_every: int | None = 8) -> tuple[list[int], list[int]]:
+    """The LLFF / Mip-NeRF360 / 3DGS hold-out: over the **name-sorted** list, index % test_every == 0
+    is test. Returns (train, test) indices into ``names`` (not into the sorted list).
+    ``test_every`` None or 0 puts every image in train."""
+    order = sorted(range(len(names)), key=lambda i: names[i])
+    if not test_every:
+        return order, []
+    test = [i for k, i in enumerate(order) if k % test_every == 0]
+    train = [i for k, i in enumerate(order) if k % test_every != 0]
+    return train, test
+
+
+def split_description(test_every: int | None) -> str:
+    if not test_every:
+        return "no test split (all images train)"
+    return f"every {test_every}th of the name-sorted images (index % {test_every} == 0) is test"
+

@@ -1,0 +1,225 @@
+"""COLMAP scenes through pycolmap (Mip-NeRF360, Tanks&Temples, Deep Blending, LLFF, a user's capture).
+
+Layout expected::
+
+    <scene>/images/...          full-resolution images, named as in the model
+    <scene>/images_2/ ...       optional pre-downscaled copies (Mip-NeRF360 ships JPEG images_2/4/8)
+    <scene>/sparse/0/{cameras,images,points3D}.{bin,txt}   (or directly in <scene>/sparse/)
+
+Cameras must be undistorted PINHOLE / SIMPLE_PINHOLE, as for 3DGS.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from smgs.camera import Camera
+from smgs.data.images import (ResolutionRule, check_aspect, describe_resampling, find_image, image_size,
+                              parallel_map, read_image, resize_image, resolve_auto_folder, scale_intrinsics)
+from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
+                             camera_extent, split_description, split_every)
+
+LAYOUT = ("<scene>/images/<name as in the model>, optional <scene>/images_N/, and a COLMAP model "
+          "<scene>/sparse/0/{cameras,images,points3D}.{bin,txt} (or <scene>/sparse/)")
+SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_MODEL_FILES = ("cameras", "images", "points3D")
+# Smallest record of each binary file (COLMAP src/colmap/scene/reconstruction_io.cc layouts): used to
+# refuse a corrupt header before pycolmap tries to allocate a garbage-sized array.
+_MIN_RECORD_BYTES = {"cameras": 4 + 4 + 8 + 8 + 3 * 8, "images": 4 + 32 + 24 + 4 + 1 + 8,
+                     "points3D": 8 + 24 + 3 + 8 + 8}
+
+
+@dataclass
+class ColmapImage:
+    """One registered image of a model, at the model's camera resolution."""
+
+    name: str
+    camera_id: int
+    model: str
+    K: np.ndarray          # [3, 3] float64, for the camera's width x height
+    width: int
+    height: int
+    viewmat: np.ndarray    # [4, 4] float64 world-to-camera (OpenCV axes, as COLMAP)
+
+
+@dataclass
+class ColmapModel:
+    path: Path
+    images: list[ColmapImage]         # registered images, name-sorted
+    points: np.ndarray | None         # [M, 3] float64
+    colors: np.ndarray | None         # [M, 3] uint8
+    n_unregistered: int
+
+
+def find_model_dir(scene_dir: Path) -> Path:
+    """``sparse/0`` if it exists, else ``sparse`` holding the model files directly."""
+    scene_dir = Path(scene_dir)
+    if not scene_dir.is_dir():
+        raise DatasetNotFoundError(f"COLMAP scene folder {scene_dir} does not exist; expected {LAYOUT}")
+    for cand in (scene_dir / "sparse" / "0", scene_dir / "sparse"):
+        if any((cand / f"{f}.{ext}").is_file() for f in _MODEL_FILES for ext in ("bin", "txt")):
+            return cand
+    raise SceneFormatError(f"no COLMAP model in {scene_dir}: looked for {scene_dir / 'sparse' / '0'} and "
+                           f"{scene_dir / 'sparse'}; expected {LAYOUT}")
+
+
+def _check_model_files(model_dir: Path) -> None:
+    missing = [f for f in _MODEL_FILES
+               if not (model_dir / f"{f}.bin").is_file() and not (model_dir / f"{f}.txt").is_file()]
+    if missing:
+        raise SceneFormatError(f"COLMAP model {model_dir} is incomplete: missing "
+                               f"{', '.join(m + '.bin/.txt' for m in missing)}; expected {LAYOUT}")
+    for f in _MODEL_FILES:
+        p = model_dir / f"{f}.bin"
+        if not p.is_file():
+            continue
+        size = p.stat().st_size
+        if size < 8:
+            raise SceneFormatError(f"corrupt COLMAP model file {p}: {size} bytes, shorter than its header")
+        with open(p, "rb") as fh:
+            (count,) = struct.unpack("<Q", fh.read(8))
+        if count * _MIN_RECORD_BYTES[f] > size - 8:
+            raise SceneFormatError(
+                f"corrupt COLMAP model file {p}: its header announces {count} records, which cannot fit "
+                f"in {size} bytes. Re-export the model (colmap model_converter) or restore the file.")
+
+
+def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
+    """Read and check a COLMAP model with pycolmap. Every failure names the path."""
+    import pycolmap  # imported here: listing datasets should not need it
+
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise DatasetNotFoundError(f"COLMAP model folder {model_dir} does not exist; expected {LAYOUT}")
+    _check_model_files(model_dir)
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except (ValueError, IndexError, RuntimeError, MemoryError, OSError) as e:
+        raise SceneFormatError(f"corrupt COLMAP model in {model_dir}: pycolmap could not read it ({e}). "
+                               f"Expected {LAYOUT}") from e
+
+    cams = {}
+    for cid, cam in rec.cameras.items():
+        model = cam.model.name
+        if model not in SUPPORTED_MODELS:
+            raise SceneFormatError(
+                f"COLMAP camera {cid} in {model_dir} uses the {model} model; smgs (like 3DGS) needs "
+                f"undistorted {' or '.join(SUPPORTED_MODELS)} cameras. Undistort the scene first: "
+                f"colmap image_undistorter --image_path <scene>/images --input_path {model_dir} "
+                "--output_path <new scene> --output_type COLMAP")
+        cams[cid] = (model, np.asarray(cam.calibration_matrix(), dtype=np.float64), int(cam.width), int(cam.height))
+
+    images, n_unreg = [], 0
+    for img in rec.images.values():
+        if not img.has_pose:
+            n_unreg += 1
+            continue
+        model, K, w, h = cams[img.camera_id]
+        vm = np.eye(4)
+        vm[:3, :] = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
+        images.append(ColmapImage(img.name, int(img.camera_id), model, K, w, h, vm))
+    if not images:
+        raise SceneFormatError(f"COLMAP model {model_dir} has no registered images")
+    images.sort(key=lambda im: im.name)
+
+    points = colors = None
+    if with_points and len(rec.points3D) > 0:
+        pts = list(rec.points3D.values())
+        points = np.array([p.xyz for p in pts], dtype=np.float64)
+        colors = np.array([p.color for p in pts], dtype=np.uint8)
+    return ColmapModel(model_dir, images, points, colors, n_unreg)
+
+
+def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
+                factor: float | None = None, max_width: int | None = None, resample: str | None = None,
+                test_every: int | None = 8, model_dir: str | Path | None = None, with_points: bool = True,
+                name: str | None = None, meta: dict | None = None, workers: int | None = None) -> Scene:
+    """Load a COLMAP scene.
+
+    images: source folder under ``path`` ("images", "images_2", ...); overrides the rule's folder.
+    rule: a ResolutionRule or the name of a generic one (smgs.data.datasets.GENERIC_RULES: "native",
+        "3dgs" = downscale above 1600 px width as 3DGS ``-r -1``, "cpu"); ``factor``, ``max_width``
+        and ``resample`` override its fields.
+    test_every: every Nth image of the name-sorted list is test (index % N == 0); None: no test.
+    Intrinsics are rescaled per axis to the size of the image actually loaded.
+    """
+    if isinstance(rule, str):
+        from smgs.data.datasets import get_generic_rule
+        rule = get_generic_rule(rule)
+    rule = rule.with_overrides(images=images, factor=factor, max_width=max_width, resample=resample)
+    scene_dir = Path(path)
+    mdir = Path(model_dir) if model_dir is not None else find_model_dir(scene_dir)
+    model = read_colmap_model(mdir, with_points=with_points)
+
+    folder_name = rule.images
+    if folder_name == "auto":
+        folder_name = resolve_auto_folder(scene_dir, model.images[0].name, rule.max_width)
+    folder = scene_dir / folder_name
+    if not folder.is_dir():
+        raise DatasetNotFoundError(f"image folder {folder} does not exist (COLMAP model {mdir}); expected {LAYOUT}")
+
+    paths = []
+    for im in model.images:
+        p = find_image(folder, im.name)
+        if p is None:
+            raise MissingImageError(f"image {folder / im.name} (listed in COLMAP model {mdir}) is missing; "
+                                    f"every image of the model must be in {folder}")
+        paths.append(p)
+
+    def load_one(i: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+        im, p = model.images[i], paths[i]
+        img = read_image(p)
+        src = (img.shape[1], img.shape[0])
+        check_aspect(p, src, (im.width, im.height))
+        out = rule.target_size(*src)
+        img = resize_image(img, out, rule.resample)
+        return img, scale_intrinsics(im.K, (im.width, im.height), out), src
+
+    loaded = parallel_map(load_one, range(len(model.images)), workers)
+    views = []
+    for im, (img, K, _) in zip(model.images, loaded):
+        cam = Camera(torch.from_numpy(K).float(), torch.from_numpy(im.viewmat).float(), img.shape[1], img.shape[0])
+        views.append(View(cam, torch.from_numpy(np.ascontiguousarray(img)), im.name))
+    names = [v.name for v in views]
+    tr, te = split_every(names, test_every)
+    train, test = [views[i] for i in tr], [views[i] for i in te]
+
+    src0 = loaded[0][2]
+    out_sizes = sorted({(v.camera.width, v.camera.height) for v in views})
+    factors = sorted({round(im.width / v.camera.width, 6) for im, v in zip(model.images, views)})
+    info = {
+        "loader": "colmap",
+        "dataset": "colmap",
+        "scene": name or scene_dir.resolve().name,
+        "source": str(scene_dir),
+        "model": str(mdir),
+        "rule": rule.name,
+        "rule_label": rule.label,
+        "images_folder": folder_name,
+        "resample_filter": rule.resample,
+        "image_size": list(out_sizes[0]) if len(out_sizes) == 1 else [list(s) for s in out_sizes],
+        "colmap_camera_size": [model.images[0].width, model.images[0].height],
+        "downscale_factor": factors[0] if len(factors) == 1 else factors,
+        "resampling": describe_resampling(folder_name, paths[0].suffix, src0, (views[0].camera.width,
+                                                                             views[0].camera.height), rule),
+        "camera_models": sorted({im.model for im in model.images}),
+        "split": split_description(test_every),
+        "test_every": test_every,
+        "n_images": len(views),
+        "n_train": len(train),
+        "n_test": len(test),
+        "n_unregistered_skipped": model.n_unregistered,
+        "n_points": 0 if model.points is None else int(len(model.points)),
+    }
+    info.update(meta or {})
+    return Scene(
+        name=info["scene"], train=train, test=test,
+        extent=camera_extent([v.camera for v in train] or [v.camera for v in views]),
+        points=None if model.points is None else torch.from_numpy(model.points).float(),
+        point_colors=None if model.colors is None else torch.from_numpy(model.colors).float() / 255.0,
+        meta=info)

@@ -1,0 +1,192 @@
+"""Image reading, resolution rules and resizing shared by the loaders.
+
+Resampling matters for the numbers: JPEG ``images_N`` folders as shipped versus our own downscaling
+of the full-resolution images moves PSNR by 0.3-0.5 dB (shared/research/anchors.md 1.4, 2.5), so
+every loader records which one it used (``describe_resampling``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+from PIL import Image
+
+from smgs.data.scene import SceneFormatError
+
+# PIL filters by name. BICUBIC is what 3DGS (PILtoTorch: ``Image.resize`` default) and gsplat
+# (``_resize_image_folder``) use, so it is the default for our own downscaling.
+RESAMPLE: dict[str, Image.Resampling] = {
+    "bicubic": Image.Resampling.BICUBIC,
+    "lanczos": Image.Resampling.LANCZOS,
+    "bilinear": Image.Resampling.BILINEAR,
+    "box": Image.Resampling.BOX,
+    "nearest": Image.Resampling.NEAREST,
+}
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+
+
+@dataclass(frozen=True)
+class ResolutionRule:
+    """How to get a training image from what is on disk.
+
+    images: source folder under the scene ("images", "images_4", ...). "auto" takes the smallest
+        shipped ``images_N`` folder that is still at least ``max_width`` wide (else "images") -
+        only for presets that downscale anyway (the cpu one), to avoid decoding 5K JPEGs.
+    factor: divide the source size by this (3DGS ``-r N``; size rounded half up).
+    max_width: images wider than this are downscaled to this width, keeping the aspect ratio
+        (3DGS ``-r -1`` with 1600; the height is truncated as 3DGS does). Never upsamples.
+    resample: PIL filter for our own resizing (see RESAMPLE).
+    label: said next to every number the rule produced (e.g. that a preset is not the paper's).
+    """
+
+    name: str = "native"
+    images: str = "images"
+    factor: float | None = None
+    max_width: int | None = None
+    resample: str = "bicubic"
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        if self.resample not in RESAMPLE:
+            raise ValueError(f"unknown resample {self.resample!r}; expected one of {', '.join(RESAMPLE)}")
+        if self.factor is not None and self.factor <= 0:
+            raise ValueError(f"factor must be > 0, got {self.factor}")
+        if self.max_width is not None and self.max_width <= 0:
+            raise ValueError(f"max_width must be > 0, got {self.max_width}")
+
+    def target_size(self, width: int, height: int) -> tuple[int, int]:
+        """Output (width, height) for a source image of this size."""
+        w, h = width, height
+        if self.factor is not None and self.factor != 1:
+            w, h = _round_half_up(w / self.factor), _round_half_up(h / self.factor)
+        if self.max_width is not None and w > self.max_width:
+            # Integer arithmetic: 3DGS's int(h / (w / 1600)) can lose a pixel to float rounding.
+            w, h = self.max_width, (h * self.max_width) // w
+        return max(w, 1), max(h, 1)
+
+    def with_overrides(self, **kw) -> "ResolutionRule":
+        """A copy with the given non-None fields replaced (name kept unless given)."""
+        kw = {k: v for k, v in kw.items() if v is not None}
+        return replace(self, **kw) if kw else self
+
+
+def _round_half_up(x: float) -> int:
+    return int(np.floor(x + 0.5))
+
+
+def find_image(folder: Path, name: str) -> Path | None:
+    """``folder/name``, or the single file with the same stem and another image extension (a
+    ``images_N`` folder may hold PNGs for JPEG originals)."""
+    p = folder / name
+    if p.is_file():
+        return p
+    parent = p.parent
+    if not parent.is_dir():
+        return None
+    stem = p.stem
+    cands = [q for q in parent.iterdir() if q.stem == stem and q.suffix.lower() in IMAGE_EXTENSIONS]
+    return cands[0] if len(cands) == 1 else None
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the header only."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except OSError as e:
+        raise SceneFormatError(f"cannot read image {path}: {e}") from e
+
+
+def read_image(path: Path, keep_alpha: bool = False) -> np.ndarray:
+    """uint8 [H, W, 3] (or [H, W, 4] when ``keep_alpha`` and the file has alpha). EXIF orientation is
+    not applied, as COLMAP and 3DGS do not apply it either: the pixels stay the ones COLMAP saw."""
+    try:
+        with Image.open(path) as im:
+            has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)
+            if keep_alpha and has_alpha:
+                return np.array(im.convert("RGBA"))
+            if im.mode in ("I;16", "I;16B", "I"):
+                raise SceneFormatError(f"image {path} is {im.mode} (16-bit); expected 8-bit RGB")
+            return np.array(im.convert("RGB"))
+    except OSError as e:
+        raise SceneFormatError(f"cannot read image {path}: {e}") from e
+
+
+def resize_image(img: np.ndarray, size: tuple[int, int], resample: str = "bicubic") -> np.ndarray:
+    """Resize a uint8 [H, W, C] image to (width, height) with a PIL filter."""
+    if (img.shape[1], img.shape[0]) == tuple(size):
+        return img
+    return np.array(Image.fromarray(img).resize(tuple(size), RESAMPLE[resample]))
+
+
+def scale_intrinsics(K: np.ndarray, from_size: tuple[int, int], to_size: tuple[int, int]) -> np.ndarray:
+    """K of a camera whose image was resized from ``from_size`` to ``to_size`` (width, height).
+
+    Per-axis factors of the actual sizes, so the image borders stay on the same rays; exact in the
+    pixel-centre-at-+0.5 convention shared by COLMAP, instant-ngp and smgs.camera.
+    """
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[0] *= to_size[0] / from_size[0]
+    K[1] *= to_size[1] / from_size[1]
+    K[2] = (0.0, 0.0, 1.0)
+    return K
+
+
+def check_aspect(path: Path, img_size: tuple[int, int], cam_size: tuple[int, int], tol_px: float = 1.5) -> None:
+    """Refuse an image whose aspect ratio does not match its camera (wrong folder, rotated image)
+    instead of stretching the intrinsics silently. Rounded downscales differ by under a pixel."""
+    w, h = img_size
+    cw, ch = cam_size
+    if abs(h - ch * w / cw) > tol_px and abs(w - cw * h / ch) > tol_px:
+        raise SceneFormatError(
+            f"image {path} is {w}x{h} but its camera is {cw}x{ch} (aspect {cw / ch:.4f} vs {w / h:.4f}); "
+            "the image folder does not match the camera model (a rotated image, or images from another capture?)")
+
+
+def images_n_folders(scene_dir: Path) -> list[tuple[int, Path]]:
+    """The ``images_N`` folders of a scene as (N, path), N ascending."""
+    out = []
+    for p in scene_dir.iterdir() if scene_dir.is_dir() else []:
+        m = re.fullmatch(r"images_(\d+)", p.name)
+        if m and p.is_dir():
+            out.append((int(m.group(1)), p))
+    return sorted(out)
+
+
+def resolve_auto_folder(scene_dir: Path, first_name: str, min_width: int | None) -> str:
+    """For ``images="auto"``: the smallest shipped ``images_N`` whose image ``first_name`` is at
+    least ``min_width`` wide; "images" if none is."""
+    if min_width is None:
+        return "images"
+    for _, folder in sorted(images_n_folders(scene_dir), key=lambda t: -t[0]):
+        p = find_image(folder, first_name)
+        if p is not None and image_size(p)[0] >= min_width:
+            return folder.name
+    return "images"
+
+
+def describe_resampling(folder: str, source_ext: str, src_size: tuple[int, int], out_size: tuple[int, int],
+                        rule: ResolutionRule) -> str:
+    """What was done to the pixels, for ``scene.meta['resampling']``."""
+    fmt = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}.get(source_ext.lower(), source_ext.lstrip(".").lower())
+    if tuple(src_size) == tuple(out_size):
+        if re.fullmatch(r"images_\d+", folder):
+            return f"{fmt} {folder} as shipped"
+        return f"none ({fmt} {folder} at native resolution)"
+    return f"PIL {rule.resample.upper()} from {fmt} {folder} {src_size[0]}x{src_size[1]}"
+
+
+def parallel_map(fn: Callable, items: Sequence, workers: int | None = None) -> list:
+    """Map over items with threads (PIL and OpenCV release the GIL while decoding/resampling)."""
+    workers = workers if workers is not None else min(4, os.cpu_count() or 1)
+    if workers <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(workers) as ex:
+        return list(ex.map(fn, items))
