@@ -106,10 +106,10 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         int(method_config(cfg)["steps"])
     ev = cfg["eval"]
     left_out = list(desc.get("plan", []))
-    if "trajectory" not in scene.capabilities:
-        left_out.append("view consistency: off (the scene has no video trajectory)")
-    elif not ev.get("consistency"):
+    if not ev.get("consistency"):
         left_out.append("view consistency: off (eval.consistency=false)")
+    elif not scene.trajectory and len(scene.test) < 2:
+        left_out.append("view consistency: off (no video trajectory and fewer than 2 test views)")
     for line in left_out:
         log.info("plan: %s", line)
 
@@ -194,11 +194,41 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     if callable(params):
         diag["params"] = {k: _quantiles(v) for k, v in params().items()}
     result.diagnostics = diag
+    if ev.get("consistency") and (scene.trajectory or len(scene.test) >= 2):
+        with clock.exclude("consistency"):
+            result.consistency = consistency(method, scene, run_dir, ev)
     result.status = "ok"
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
                                        "curve": [c.__dict__ for c in curve]})
     return result
+
+
+def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
+    """Table 4 for this run (paper supp. Sec. 7): a video of 128 frames between consecutive test
+    cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
+    pixels. Scored on this method's own mask; the trajectory is saved beside the results."""
+    from smgs.metrics.consistency.score import consistency_row
+    from smgs.metrics.consistency.trajectory import interpolate_trajectory
+
+    if scene.trajectory:
+        traj = scene.trajectory
+        atomic_write_text(run_dir / "trajectory.json", json.dumps(
+            {"source": "scene", "cameras": [{"K": c.K.tolist(), "viewmat": c.viewmat.tolist(),
+                                             "width": c.width, "height": c.height} for c in traj]}))
+    else:
+        traj = interpolate_trajectory([v.camera for v in scene.test], 128)
+        traj.save(run_dir / "trajectory.json")
+
+    def render(cam):
+        out = method.render(cam)
+        return out.rgb, out.depth
+
+    row = consistency_row(render, traj, scene=scene.name, method=method.name if hasattr(method, "name") else "",
+                          test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.get("flow", "geometric"))
+    out = row.to_json()
+    out["mask"] = "per-method"
+    return out
 
 
 def _versions(backend: str, device: str) -> dict[str, str]:
