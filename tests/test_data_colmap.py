@@ -159,6 +159,18 @@ def test_corrupt_model_file(tmp_path, victim):
     assert str(scene / "sparse" / "0") in str(e.value)
 
 
+@pytest.mark.parametrize("victim", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_truncated_model_file(tmp_path, victim):
+    """A partial copy: pycolmap itself would read a cut cameras.bin without complaint."""
+    scene = _tmp_scene(tmp_path)
+    p = scene / "sparse" / "0" / victim
+    data = p.read_bytes()
+    p.write_bytes(data[:len(data) - 3])
+    with pytest.raises(SceneFormatError, match="corrupt COLMAP model") as e:
+        load_colmap(scene)
+    assert str(scene / "sparse" / "0") in str(e.value)
+
+
 def test_missing_image(tmp_path):
     scene = _tmp_scene(tmp_path, images=None)
     (scene / "images").mkdir()

@@ -89,6 +89,23 @@ def _check_model_files(model_dir: Path) -> None:
                 f"in {size} bytes. Re-export the model (colmap model_converter) or restore the file.")
 
 
+def _check_binary_sizes(model_dir: Path, rec) -> None:
+    """pycolmap reads a truncated file without complaint (a cut cameras.bin yields a garbage focal
+    length), so each binary file must be exactly as long as the records it was read into."""
+    expected = {
+        "cameras": 8 + sum(4 + 4 + 8 + 8 + 8 * len(c.params) for c in rec.cameras.values()),
+        "images": 8 + sum(4 + 32 + 24 + 4 + len(i.name.encode()) + 1 + 8 + 24 * i.num_points2D()
+                          for i in rec.images.values()),
+        "points3D": 8 + sum(8 + 24 + 3 + 8 + 8 + 8 * p.track.length() for p in rec.points3D.values()),
+    }
+    for f, n in expected.items():
+        p = model_dir / f"{f}.bin"
+        if p.is_file() and p.stat().st_size != n:
+            raise SceneFormatError(
+                f"corrupt COLMAP model file {p}: {p.stat().st_size} bytes, but the records read from it take "
+                f"{n} bytes (truncated or padded). Re-export the model (colmap model_converter) or restore the file.")
+
+
 def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
     """Read and check a COLMAP model with pycolmap. Every failure names the path."""
     import pycolmap  # imported here: listing datasets should not need it
@@ -102,6 +119,7 @@ def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
     except (ValueError, IndexError, RuntimeError, MemoryError, OSError) as e:
         raise SceneFormatError(f"corrupt COLMAP model in {model_dir}: pycolmap could not read it ({e}). "
                                f"Expected {LAYOUT}") from e
+    _check_binary_sizes(model_dir, rec)
 
     cams = {}
     for cid, cam in rec.cameras.items():

@@ -179,6 +179,8 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
         from smgs.data.datasets import get_generic_rule
         rule = get_generic_rule(rule)
     rule = rule.with_overrides(factor=factor, max_width=max_width, resample=resample)
+    if images == "auto":
+        raise ValueError("images='auto' is for COLMAP scenes; name the folder (e.g. 'images_4')")
     path = Path(path)
     files, base = _find_transforms(path)
 
@@ -194,8 +196,6 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
         if "file_path" not in fr or "transform_matrix" not in fr:
             raise SceneFormatError(f"{where}: a frame needs file_path and transform_matrix; expected {LAYOUT}")
         cam = {**glob, **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}
-        if images == "auto":
-            raise ValueError("images='auto' is for COLMAP scenes; name the folder (e.g. 'images_4')")
         p = _image_path(base, fr["file_path"], images)
         entries.append((split, cam, fr, p, where))
 
