@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -124,6 +123,9 @@ def test_table4_row(trajectory, tmp_path):
     rows = consistency_rows({"m": render}, short, scene="toy", border=8, steps=(1,))
     assert isinstance(rows["m"].psnr, Missing) and isinstance(rows["m"].mse, Missing)
     assert "no pair at step 7" in rows["m"].mse.reason and not isinstance(rows["m"].scores[1].mse, Missing)
+    cams = consistency_rows({"m": render}, trajectory.cameras()[:3], scene="toy", border=8, steps=(1,),
+                            table_step=1)["m"]  # a plain camera path works too
+    assert cams.trajectory == {"n_frames": 3} and len(cams.scores[1].per_pair) == 2
     traj_path = tmp_path / "trajectory.json"
     trajectory.save(traj_path)
     assert json.loads(traj_path.read_text())["n_between"] == 8

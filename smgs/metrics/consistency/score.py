@@ -235,7 +235,7 @@ def mean_test_psnr(render: RenderFn, test_views: Sequence[tuple[Camera, torch.Te
     return res.means()["psnr"]
 
 
-def consistency_rows(renders: Mapping[str, RenderFn], trajectory: Trajectory, *, scene: str,
+def consistency_rows(renders: Mapping[str, RenderFn], trajectory: Trajectory | Sequence[Camera], *, scene: str,
                      test_views: Sequence[tuple[Camera, torch.Tensor]] | None = None,
                      table_step: int = 7, steps: Sequence[int] = DEFAULT_STEPS,
                      estimator: str = "geometric", border: int = BORDER_PX, shared_mask: bool = True,
@@ -246,8 +246,11 @@ def consistency_rows(renders: Mapping[str, RenderFn], trajectory: Trajectory, *,
     scores = score_consistency(renders, trajectory, steps=steps, estimator=estimator, border=border,
                                shared_mask=shared_mask, flip_min_subtraction=flip_min_subtraction,
                                quantize=quantize, progress=progress)
-    traj = {"n_frames": len(trajectory), "n_targets": trajectory.n_targets,
-            "n_between": trajectory.n_between, "n_dropped": len(trajectory.dropped)}
+    if isinstance(trajectory, Trajectory):
+        traj = {"n_frames": len(trajectory), "n_targets": trajectory.n_targets,
+                "n_between": trajectory.n_between, "n_dropped": len(trajectory.dropped)}
+    else:  # a camera path given as is (e.g. a scene's own video trajectory)
+        traj = {"n_frames": len(trajectory)}
     rows = {}
     for m, render in renders.items():
         long = scores[m][table_step]
@@ -257,7 +260,7 @@ def consistency_rows(renders: Mapping[str, RenderFn], trajectory: Trajectory, *,
     return rows
 
 
-def consistency_row(render: RenderFn, trajectory: Trajectory, *, scene: str, method: str,
+def consistency_row(render: RenderFn, trajectory: Trajectory | Sequence[Camera], *, scene: str, method: str,
                     test_views: Sequence[tuple[Camera, torch.Tensor]] | None = None,
                     **kwargs) -> Table4Row:
     """Table 4's row for one scene and one method (its own mask; see ``consistency_rows`` to
