@@ -1,0 +1,231 @@
+"""``python -m reports.build RUNS_DIR [--out DIR] [--no-stability]``: results tree -> report.
+
+Reads every results.json below RUNS_DIR and writes, into DIR (default RUNS_DIR/report):
+``report.md``, ``tables/<table>.csv`` (one per table, long format), ``tables/runs.csv`` (every run),
+``plots/*.png``. Every file is written atomically (temp file + rename); files of a previous build
+that this build does not produce are removed (only those the previous build listed in its manifest).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import sys
+from collections import Counter
+from datetime import datetime, timezone
+from pathlib import Path
+
+from protocols.results import RunResult, atomic_write_bytes, atomic_write_text
+from reports.diagnostics import diagnostics_section
+from reports.environment import environment_markdown
+from reports.paper import load_paper
+from reports.plots import Plot, pareto_plot, time_curves
+from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
+from reports.stability import compute_stability, stability_section
+from reports.table import Section
+from reports.tables import Context, table1, table2, table3, table4, table5
+from reports.tradeoff import tradeoff_points
+
+REPORT = "report.md"
+MANIFEST = ".report_files.json"
+MAX_LISTED_FAILURES = 50
+
+READING_GUIDE = """\
+How to read the tables: each value of ours is followed by the paper's value and the difference
+(Δ = ours − paper; for counts, minutes and FPS ×paper = ours / paper). **Bold** is the best and *italics*
+the second best among rows that compete (same group or scene, same protocol preset, and for speed the
+same device). "—" means there is no value; its footnote says why (failed with the error, skipped for
+missing data, metric not computed, or not in the paper). "[cpu]" marks a row of a reduced protocol
+preset, which is never the paper's protocol."""
+
+
+def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
+                 stability: list[dict] | str | None = None) -> Path:
+    """Build the report of every run below ``runs_dir``; returns the path of report.md.
+
+    ``stability``: the stiff-case battery's rows (``smgs.raster.stability.stiff_battery``); None runs the
+    battery here if that module is importable; a string is the reason it was not computed."""
+    runs_dir = Path(runs_dir)
+    out = Path(out_dir) if out_dir is not None else runs_dir / "report"
+    loaded = load_runs(runs_dir)
+    runs = [x.result for x in loaded.runs]
+    paper = load_paper()
+    ctx = Context.of(runs, paper)
+
+    sections = [f(runs, ctx) for f in (table1, table2, table3, table4, table5)]
+    plots = time_curves(runs)
+    fps_pts, gs_pts = tradeoff_points(runs)
+    for p in (pareto_plot(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
+                          "PSNR against render FPS, one point per method × budget (dataset means as in Table 2; "
+                          "one panel per dataset or pattern); the dashed line and rings mark the Pareto front."),
+              pareto_plot(gs_pts, "psnr_vs_gaussians.png", "#Gaussians", False, True,
+                          "PSNR against the number of Gaussians, one point per method × budget (or cap); the "
+                          "dashed line and rings mark the Pareto front (higher PSNR with fewer Gaussians).")):
+        if p is not None:
+            plots.append(p)
+    diag, diag_plots = diagnostics_section(runs, ctx)
+
+    computed_here = stability is None
+    reason = None
+    if stability is None:
+        stability, reason = compute_stability()
+    elif isinstance(stability, str):
+        stability, reason = None, stability
+    stab = stability_section(stability, reason, computed_here)
+
+    files: dict[str, bytes] = {}
+    for sec in [*sections, diag, stab]:
+        recs = sec.csv_records()
+        if recs:
+            files[f"tables/{sec.name}.csv"] = _csv(recs)
+    files["tables/runs.csv"] = _csv(_run_records(loaded))
+    for p in [*plots, *diag_plots]:
+        files[f"plots/{p.name}"] = p.png
+
+    md = _markdown(runs_dir, loaded, paper.error, ctx, sections, plots, diag, diag_plots, stab, runs, files)
+    _write(out, files, md)
+    return out / REPORT
+
+
+# ---- markdown -----------------------------------------------------------------------------------
+
+def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, ctx: Context, sections: list[Section],
+              plots: list[Plot], diag: Section, diag_plots: list[Plot], stab: Section, runs: list[RunResult],
+              files: dict[str, bytes]) -> str:
+    status = Counter(r.status for r in runs)
+    when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    out = ["# smgs report", "",
+           f"Runs directory: `{runs_dir.resolve()}` · built {when} · {len(runs)} results ("
+           + ", ".join(f"{n} {s}" for s, n in sorted(status.items())) + ")", ""]
+    presets = Counter(r.preset for r in runs)
+    if presets:
+        out.append("Protocol presets: " + "; ".join(
+            f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})"
+            for p, n in sorted(presets.items())) + ".")
+        out.append("")
+    out.append(f"Paper's numbers: {paper_error}." if paper_error else
+               "Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).")
+    out += ["", READING_GUIDE, ""]
+    out.append(_problems(loaded, runs))
+    for sec in sections:
+        out.append(sec.markdown(csv_link=_link(files, sec.name)))
+    out.append("## Error against run time\n")
+    if plots:
+        for p in plots:
+            out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
+    else:
+        out.append("Not produced: no finished run records a training curve, FPS or Gaussian count.\n")
+    out.append(diag.markdown(csv_link=_link(files, diag.name)))
+    for p in diag_plots:
+        out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
+    out.append(stab.markdown(csv_link=_link(files, stab.name)))
+    out += ["## Environment", "", environment_markdown(runs)]
+    return "\n".join(out).rstrip() + "\n"
+
+
+def _link(files: dict[str, bytes], name: str) -> str | None:
+    path = f"tables/{name}.csv"
+    return path if path in files else None
+
+
+def _problems(loaded: LoadedRuns, runs: list[RunResult]) -> str:
+    bad = sorted((r for r in runs if r.status != "ok"), key=lambda r: (r.dataset, r.scene, r.method, r.budget, r.seed))
+    out = ["## Runs that did not finish", ""]
+    if not bad and not loaded.unreadable and not loaded.duplicates:
+        return "\n".join(out + ["Every run finished.", ""])
+    if bad:
+        out += ["| Run | Status | Error |", "|:--|:--|:--|"]
+        for r in bad[:MAX_LISTED_FAILURES]:
+            key = f"{r.dataset}/{r.scene}/{r.method}/{r.budget}/seed{r.seed}" + \
+                ("" if r.preset == "paper" else f" [{r.preset}]")
+            out.append(f"| {key} | {r.status} | {_esc(one_line(r.error or 'no error recorded', 300))} |")
+        if len(bad) > MAX_LISTED_FAILURES:
+            out.append(f"\n… and {len(bad) - MAX_LISTED_FAILURES} more (tables/runs.csv lists every run).")
+        out.append("")
+    for path, err in loaded.unreadable:
+        out.append(f"- Unreadable results file, left out: `{path}`: {_esc(one_line(err, 300))}")
+    for dropped, kept in loaded.duplicates:
+        out.append(f"- Duplicate result for the same run, left out: `{dropped}` (kept `{kept}`)")
+    return "\n".join(out) + "\n"
+
+
+def _esc(text: str) -> str:
+    return str(text).replace("|", "\\|")
+
+
+# ---- files --------------------------------------------------------------------------------------
+
+def _run_records(loaded: LoadedRuns) -> list[dict]:
+    recs = []
+    for run in sorted(loaded.runs, key=lambda x: str(x.path)):
+        r = run.result
+        recs.append({"dataset": r.dataset, "scene": r.scene, "method": r.method, "budget": r.budget,
+                     "cap": pattern_cap(r) if is_pattern(r) else None, "seed": r.seed, "preset": r.preset,
+                     "status": r.status, "error": r.error or "",
+                     **{k: r.metrics.get(k) for k in ("psnr", "ssim", "lpips", "flip")},
+                     "lpips_net": r.lpips_net, "num_gaussians": r.num_gaussians, "train_seconds": r.train_seconds,
+                     "render_fps": r.render_fps, "render_device": r.render_device, "steps": r.steps,
+                     "missing": "; ".join(f"{k}: {v}" for k, v in r.missing.items()),
+                     "config_hash": r.config_hash, "path": str(run.path)})
+    return recs
+
+
+def _csv(records: list[dict]) -> bytes:
+    fields: list[str] = []
+    for rec in records:
+        fields += [k for k in rec if k not in fields]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    for rec in records:
+        w.writerow({k: _cell(rec.get(k)) for k in fields})
+    return buf.getvalue().encode()
+
+
+def _cell(v: object) -> object:
+    if v is None:
+        return ""
+    if isinstance(v, float) and not math.isfinite(v):
+        return ""
+    return v
+
+
+def _write(out: Path, files: dict[str, bytes], md: str) -> None:
+    """Tables and plots first, report.md last; then remove what the previous build wrote and this one
+    did not."""
+    out.mkdir(parents=True, exist_ok=True)
+    old: list[str] = []
+    try:
+        old = json.loads((out / MANIFEST).read_text())
+    except (OSError, ValueError):
+        pass
+    for rel, data in files.items():
+        atomic_write_bytes(out / rel, data)
+    atomic_write_text(out / REPORT, md)
+    atomic_write_text(out / MANIFEST, json.dumps(sorted(files)))
+    for rel in set(old) - set(files):
+        p = out / rel
+        if p.is_file() and ".." not in Path(rel).parts:
+            p.unlink()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m reports.build", description=__doc__.splitlines()[0])
+    ap.add_argument("runs_dir", type=Path, help="directory searched recursively for results.json")
+    ap.add_argument("--out", type=Path, default=None, help="output directory (default RUNS_DIR/report)")
+    ap.add_argument("--no-stability", action="store_true", help="do not run the renderer's stiff-case battery")
+    args = ap.parse_args(argv)
+    if not args.runs_dir.is_dir():
+        print(f"error: {args.runs_dir} is not a directory", file=sys.stderr)
+        return 2
+    stability = "skipped (--no-stability)" if args.no_stability else None
+    path = build_report(args.runs_dir, args.out, stability=stability)
+    print(f"report: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

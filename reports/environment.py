@@ -1,0 +1,103 @@
+"""The environment block: what the runs recorded (``RunResult.versions``, ``render_device``) beside the
+machine that builds the report."""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+from collections import Counter
+from pathlib import Path
+
+from protocols.results import RunResult
+
+ROOT = Path(__file__).resolve().parent.parent
+ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),
+         ("device", "device"), ("cpu", "CPU model"), ("gpu", "GPU"), ("git", "git revision")]
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def git_revision(root: Path = ROOT) -> str:
+    """Short revision of the checkout that holds ``reports/`` (with "+ uncommitted changes" when dirty),
+    or "unknown" outside a git checkout of this project."""
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10)
+    try:
+        top = git("rev-parse", "--show-toplevel")
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root.resolve():
+            return "unknown"
+        rev = git("rev-parse", "--short", "HEAD").stdout.strip()
+        dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+        return (rev + (" + uncommitted changes" if dirty else "")) if rev else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _version(module: str) -> str:
+    try:
+        mod = __import__(module)
+        return str(getattr(mod, "__version__", "unknown"))
+    except Exception as e:  # noqa: BLE001 - report, never fail, on an import problem
+        return f"not importable ({type(e).__name__})"
+
+
+def this_machine() -> dict[str, str]:
+    env = {"smgs": _version("smgs"), "torch": _version("torch"), "numpy": _version("numpy"),
+           "python": platform.python_version(), "cpu": cpu_model(), "git": git_revision(),
+           "matplotlib": _version("matplotlib")}
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            env["gpu"] = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+            env["device"] = "cuda"
+        else:
+            env["gpu"] = "none (torch sees no CUDA device)"
+            env["device"] = "cpu"
+    except Exception as e:  # noqa: BLE001
+        env["gpu"] = f"unknown (torch not importable: {type(e).__name__})"
+    # not probed: checking the compiled backend could build it; the stability rows name their backend
+    env["backend"] = "not probed (the build renders nothing)"
+    return env
+
+
+def _runs_value(runs: list[RunResult], key: str) -> str:
+    vals: Counter[str] = Counter()
+    for r in runs:
+        v = r.versions.get(key) if r.versions else None
+        if key == "device" and r.render_device:
+            v = r.render_device if not v else v
+        if v:
+            vals[str(v)] += 1
+    if not vals:
+        return "not recorded"
+    if len(vals) == 1:
+        return next(iter(vals))
+    return "mixed: " + "; ".join(f"{v} ({n} runs)" for v, n in vals.most_common())
+
+
+def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None) -> str:
+    machine = machine if machine is not None else this_machine()
+    lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
+    for key, label in ITEMS:
+        lines.append(f"| {label} | {_esc(_runs_value(runs, key))} | {_esc(machine.get(key, 'not recorded'))} |")
+    lines.append(f"| matplotlib | — | {_esc(machine.get('matplotlib', 'unknown'))} |")
+    devices = sorted({r.render_device for r in runs if r.render_device})
+    out = ["\n".join(lines), ""]
+    if devices:
+        out.append(f"Render devices of the runs: {', '.join(devices)}.")
+    out.append("\"runs\" is what each results.json recorded (a value is listed with its count when runs differ); "
+               "\"not recorded\" means no run stored it.")
+    return "\n".join(out) + "\n"
+
+
+def _esc(text: str) -> str:
+    return str(text).replace("|", "\\|")

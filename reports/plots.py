@@ -1,0 +1,173 @@
+"""Error against run time, as PNG figures (matplotlib's Agg canvas; no pyplot, no global backend).
+
+- PSNR against train seconds: one curve per run from its intermediate evaluations, one panel per scene
+  (per pattern for the 2D fits).
+- PSNR against render FPS and PSNR against #Gaussians: one point per method × budget (× preset), one
+  panel per dataset (per pattern), the Pareto front of each preset marked.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import zlib
+from dataclasses import dataclass
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from protocols.results import RunResult
+from reports.paper import dataset_label, dataset_rank, method_label, method_rank, scene_rank
+from reports.runs import Value, is_pattern, pattern_cap
+
+PANELS_PER_FIGURE = 9
+COLORS = {"3dgs": "#1f77b4", "gef_only": "#2ca02c", "softmax_only": "#ff7f0e", "softmax_gs": "#d62728"}
+EXTRA_COLORS = ["#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
+LINESTYLES = ["-", "--", ":", "-."]
+MARKERS = {"paper": "o", "cpu": "s"}
+
+
+@dataclass
+class Plot:
+    name: str        # file name, e.g. "psnr_vs_time.png"
+    caption: str
+    png: bytes
+
+
+@dataclass
+class Point:
+    """One method × budget (× preset) of one panel."""
+
+    panel: str
+    method: str
+    budget: str
+    preset: str
+    psnr: Value
+    x: Value          # FPS or #Gaussians
+
+    @property
+    def label(self) -> str:
+        short = {"full": "full", "5pct": "5%", "mini": "mini", "light": "light"}.get(self.budget, self.budget)
+        return short + ("" if self.preset == "paper" else f" [{self.preset}]")
+
+
+def color(method: str) -> str:
+    if method in COLORS:
+        return COLORS[method]
+    return EXTRA_COLORS[zlib.crc32(method.encode()) % len(EXTRA_COLORS)]  # stable across processes
+
+
+def _png(fig: Figure) -> bytes:
+    FigureCanvasAgg(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _grid(n: int) -> tuple[int, int]:
+    cols = min(3, n)
+    return math.ceil(n / cols), cols
+
+
+# ---- PSNR against train seconds ----------------------------------------------------------------
+
+def time_curves(runs: list[RunResult]) -> list[Plot]:
+    panels: dict[str, list[RunResult]] = {}
+    for r in sorted(runs, key=lambda r: (dataset_rank(r.dataset), scene_rank(r.dataset, r.scene))):
+        if r.status == "ok" and r.curve:
+            panels.setdefault(f"{r.dataset}/{r.scene}", []).append(r)
+    names = list(panels)
+    plots = []
+    for start in range(0, len(names), PANELS_PER_FIGURE):
+        chunk = names[start:start + PANELS_PER_FIGURE]
+        rows, cols = _grid(len(chunk))
+        fig = Figure(figsize=(4.2 * cols, 3.2 * rows), layout="constrained")
+        budgets: dict[str, str] = {}
+        for i, name in enumerate(chunk):
+            ax = fig.add_subplot(rows, cols, i + 1)
+            seen = set()
+            xs_all = []
+            for r in sorted(panels[name], key=lambda r: (method_rank(r.method), _budget(r), r.seed)):
+                ls = budgets.setdefault(_budget(r), LINESTYLES[len(budgets) % len(LINESTYLES)])
+                xs = [c.seconds for c in r.curve]
+                ys = [c.psnr for c in r.curve]
+                xs_all += [x for x in xs if x > 0]
+                label = f"{method_label(r.method)} {_budget(r)}" + ("" if r.preset == "paper" else f" [{r.preset}]")
+                ax.plot(xs, ys, ls, color=color(r.method), marker=MARKERS.get(r.preset, "^"), markersize=3,
+                        linewidth=1, alpha=0.8, label=None if label in seen else label)
+                seen.add(label)
+            if xs_all and max(xs_all) / min(xs_all) > 50:
+                ax.set_xscale("log")
+            ax.set_title(name, fontsize=9)
+            ax.set_xlabel("train seconds")
+            ax.set_ylabel("PSNR (dB)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=6, loc="lower right")
+        part = "" if start == 0 else f"_{start // PANELS_PER_FIGURE + 1}"
+        plots.append(Plot(f"psnr_vs_time{part}.png",
+                          "Test-view PSNR against train seconds (evaluation excluded), one curve per run "
+                          "from its intermediate evaluations; colour = method, line style = budget.",
+                          _png(fig)))
+    return plots
+
+
+def _budget(r: RunResult) -> str:
+    if is_pattern(r) and pattern_cap(r) is not None:
+        return f"cap {pattern_cap(r)}"
+    return r.budget
+
+
+# ---- Pareto plots ------------------------------------------------------------------------------
+
+def pareto_front(points: list[tuple[float, float]], x_higher_better: bool) -> list[int]:
+    """Indices of the points no other point beats in both x and y (y = PSNR, higher is better)."""
+    def beats(a: tuple[float, float], b: tuple[float, float]) -> bool:
+        ax_ok = a[0] >= b[0] if x_higher_better else a[0] <= b[0]
+        strict = (a[0] != b[0]) or (a[1] != b[1])
+        return ax_ok and a[1] >= b[1] and strict
+    return [i for i, p in enumerate(points) if not any(beats(q, p) for j, q in enumerate(points) if j != i)]
+
+
+def pareto_plot(points: list[Point], name: str, xlabel: str, x_higher_better: bool, log_x: bool,
+                caption: str) -> Plot | None:
+    panels: dict[str, list[Point]] = {}
+    for p in points:
+        if p.psnr.ok and p.x.ok and (not log_x or p.x.mean > 0):
+            panels.setdefault(p.panel, []).append(p)
+    if not panels:
+        return None
+    names = list(panels)[:PANELS_PER_FIGURE * 2]
+    rows, cols = _grid(len(names))
+    fig = Figure(figsize=(4.2 * cols, 3.4 * rows), layout="constrained")
+    for i, panel in enumerate(names):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        pts = sorted(panels[panel], key=lambda p: (method_rank(p.method), p.budget))
+        seen = set()
+        for p in pts:
+            lab = method_label(p.method) + ("" if p.preset == "paper" else f" [{p.preset}]")
+            ax.scatter([p.x.mean], [p.psnr.mean], color=color(p.method), marker=MARKERS.get(p.preset, "^"),
+                       s=28, zorder=3, label=None if lab in seen else lab)
+            seen.add(lab)
+            ax.annotate(p.label, (p.x.mean, p.psnr.mean), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        for preset in sorted({p.preset for p in pts}):
+            sub = [p for p in pts if p.preset == preset]
+            front = [sub[j] for j in pareto_front([(p.x.mean, p.psnr.mean) for p in sub], x_higher_better)]
+            front.sort(key=lambda p: p.x.mean)
+            ax.plot([p.x.mean for p in front], [p.psnr.mean for p in front], "k--", linewidth=0.8, zorder=2,
+                    label="Pareto front" if "Pareto front" not in seen else None)
+            ax.scatter([p.x.mean for p in front], [p.psnr.mean for p in front], s=90, facecolors="none",
+                       edgecolors="k", linewidths=0.9, zorder=4)
+            seen.add("Pareto front")
+        if log_x:
+            ax.set_xscale("log")
+        ax.set_title(panel, fontsize=9)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc="best")
+    return Plot(name, caption, _png(fig))
+
+
+def panel_name(dataset: str, scene: str | None = None) -> str:
+    return f"{dataset_label(dataset)}" if scene is None else f"{dataset_label(dataset)}: {scene}"
+

@@ -1,0 +1,256 @@
+"""Reading a results tree and reducing runs to numbers-with-reasons.
+
+A report never prints a number that is not there: every value is a ``Value`` that either holds a
+mean (with std and count over the runs it came from, and notes such as "2 of 3 seeds") or the
+reason it is absent ("failed: RuntimeError: ...", "LPIPS weights not installed").
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable
+
+from protocols.results import RunResult, find_results, read_result
+
+PATTERN_DATASETS = ("patterns",)
+
+
+@dataclass(frozen=True)
+class Absent:
+    """Why a run has no value for something."""
+
+    reason: str
+
+
+Getter = Callable[[RunResult], "float | Absent"]
+
+
+@dataclass(frozen=True)
+class Value:
+    """A mean over runs (or scenes), or the reason there is none."""
+
+    mean: float | None
+    std: float | None = None
+    n: int = 0
+    reason: str | None = None
+    notes: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return self.mean is not None
+
+    @staticmethod
+    def absent(reason: str) -> "Value":
+        return Value(None, reason=reason)
+
+    @staticmethod
+    def of(x: float | None, reason: str = "") -> "Value":
+        return Value(float(x), n=1) if x is not None else Value(None, reason=reason)
+
+
+@dataclass
+class Run:
+    path: Path
+    result: RunResult
+
+    @property
+    def r(self) -> RunResult:
+        return self.result
+
+
+@dataclass
+class LoadedRuns:
+    runs: list[Run] = field(default_factory=list)
+    unreadable: list[tuple[Path, str]] = field(default_factory=list)
+    duplicates: list[tuple[Path, Path]] = field(default_factory=list)  # (ignored, kept)
+
+
+def identity(r: RunResult) -> tuple:
+    """What makes two results the same run (a pattern fit's cap included: budget "cap" alone does not
+    tell 4 from 4096)."""
+    return (r.method, r.dataset, r.scene, r.budget, r.preset, r.seed, pattern_cap(r) if is_pattern(r) else None)
+
+
+def load_runs(root: Path | str) -> LoadedRuns:
+    """Every results.json below ``root``. Unreadable files are listed, not fatal. Two results for
+    the same (method, dataset, scene, budget, preset, seed), e.g. two copies of an experiment,
+    keep one: an ok result over a failed one, then the newest file. (A pattern fit's cap is part of
+    its identity.)"""
+    out = LoadedRuns()
+    kept: dict[tuple, Run] = {}
+    for p in find_results(root):
+        try:
+            run = Run(p, read_result(p))
+        except (OSError, ValueError) as e:
+            out.unreadable.append((p, str(e)))
+            continue
+        key = identity(run.r)
+        old = kept.get(key)
+        if old is None:
+            kept[key] = run
+            continue
+        new_wins = ((run.r.status == "ok", _mtime(p)) > (old.r.status == "ok", _mtime(old.path)))
+        keep, drop = (run, old) if new_wins else (old, run)
+        kept[key] = keep
+        out.duplicates.append((drop.path, keep.path))
+    out.runs = list(kept.values())
+    return out
+
+
+def _mtime(p: Path) -> float:
+    try:
+        return os.stat(p).st_mtime
+    except OSError:
+        return 0.0
+
+
+# ---- classification ---------------------------------------------------------------------------
+
+def is_pattern(r: RunResult) -> bool:
+    return r.dataset in PATTERN_DATASETS
+
+
+def pattern_cap(r: RunResult) -> int | None:
+    """The Gaussian cap of a Table 1 fit: ``config["cap"]``, the budget config's ``cap``, a budget
+    named ``capN``, or (last resort) the final count."""
+    c = r.config or {}
+    budget_cfg = c.get("budget") if isinstance(c.get("budget"), dict) else {}
+    for v in (c.get("cap"), budget_cfg.get("cap")):
+        if v is not None:
+            return int(v)
+    m = re.fullmatch(r"cap(\d+)", r.budget)
+    if m:
+        return int(m.group(1))
+    return int(r.num_gaussians) if r.num_gaussians is not None else None
+
+
+def preset_description(runs: Iterable[RunResult]) -> str:
+    """What a reduced preset changes, from the runs' protocol config: "3000 steps, images ≤ 400 px"."""
+    parts: list[str] = []
+    for r in runs:
+        proto = (r.config or {}).get("protocol") or {}
+        steps = r.steps or proto.get("steps")
+        if steps and f"{steps} steps" not in parts:
+            parts.append(f"{steps} steps")
+        w = proto.get("max_width")
+        if w and f"images ≤ {w} px wide" not in parts:
+            parts.append(f"images ≤ {w} px wide")
+    return ", ".join(parts)
+
+
+# ---- getters: one number of one run, or why not ----------------------------------------------
+
+def _status_reason(r: RunResult) -> Absent | None:
+    if r.status == "ok":
+        return None
+    err = one_line(r.error or "no error recorded")
+    return Absent(f"{r.status}: {err}")
+
+
+def one_line(text: str, limit: int = 160) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _finite(x, what: str) -> "float | Absent":
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return Absent(f"{what} not a number ({x!r})")
+    return v if math.isfinite(v) else Absent(f"{what} recorded as {v}")
+
+
+METRIC_NAMES = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "flip": "FLIP"}
+
+
+def metric(name: str) -> Getter:
+    """A test-view mean from ``metrics``; absent with ``missing[name]`` as the reason."""
+    def get(r: RunResult) -> "float | Absent":
+        bad = _status_reason(r)
+        if bad:
+            return bad
+        if name in r.metrics and r.metrics[name] is not None:
+            return _finite(r.metrics[name], METRIC_NAMES.get(name, name))
+        if name in r.missing:
+            return Absent(f"{METRIC_NAMES.get(name, name)} missing: {one_line(r.missing[name])}")
+        return Absent(f"{METRIC_NAMES.get(name, name)} not recorded")
+    return get
+
+
+def field_getter(name: str, label: str, scale: float = 1.0) -> Getter:
+    """A top-level number of RunResult (num_gaussians, train_seconds, render_fps), times scale."""
+    def get(r: RunResult) -> "float | Absent":
+        bad = _status_reason(r)
+        if bad:
+            return bad
+        v = getattr(r, name)
+        if v is None:
+            return Absent(f"{label} not recorded")
+        x = _finite(v, label)
+        return x * scale if isinstance(x, float) else x
+    return get
+
+
+def consistency_getter(name: str) -> Getter:
+    """Table 4 numbers from ``result.consistency``: psnr (falls back to the test-view PSNR, the same
+    quantity), mse, flip (read from the key named by ``flip_name`` if present)."""
+    def get(r: RunResult) -> "float | Absent":
+        bad = _status_reason(r)
+        if bad:
+            return bad
+        c = r.consistency or {}
+        if not c:
+            return Absent("view consistency not computed")
+        key = c.get("flip_name", "flip") if name == "flip" else name
+        v = c.get(key, c.get("flip7") if name == "flip" else None)
+        if isinstance(v, dict) and "missing" in v:
+            return Absent(f"{key} missing: {one_line(v['missing'])}")
+        if v is None:
+            if name == "psnr":
+                return metric("psnr")(r)
+            return Absent(f"{key} not recorded")
+        return _finite(v, key)
+    return get
+
+
+def flow_estimator(r: RunResult) -> str:
+    c = r.consistency or {}
+    return str(c.get("estimator") or c.get("flow") or "unknown")
+
+
+# ---- aggregation ------------------------------------------------------------------------------
+
+def aggregate(runs: list[RunResult], get: Getter) -> Value:
+    """Mean ± std over runs (seeds). Runs without the value are named in a note; with none at all
+    the value is absent with their reason(s)."""
+    if not runs:
+        return Value.absent("no result in the runs directory")
+    vals: list[float] = []
+    gone: list[tuple[int, str]] = []
+    for r in sorted(runs, key=lambda r: r.seed):
+        v = get(r)
+        if isinstance(v, Absent):
+            gone.append((r.seed, v.reason))
+        else:
+            vals.append(v)
+    if not vals:
+        return Value.absent(_join_reasons(gone))
+    mean = sum(vals) / len(vals)
+    std = math.sqrt(sum((x - mean) ** 2 for x in vals) / (len(vals) - 1)) if len(vals) > 1 else None
+    notes = ()
+    if gone:
+        notes = (f"{len(vals)} of {len(runs)} seeds; {_join_reasons(gone)}",)
+    return Value(mean, std, len(vals), None, notes)
+
+
+def _join_reasons(gone: list[tuple[int, str]]) -> str:
+    reasons = sorted({reason for _, reason in gone})
+    if len(reasons) == 1 and len(gone) > 1:
+        return reasons[0]
+    if len(gone) == 1:
+        return gone[0][1]
+    return "; ".join(f"seed {s}: {reason}" for s, reason in gone)

@@ -1,0 +1,261 @@
+"""A results table: our value, the paper's value and their difference per column, best in bold,
+second in italics, every "—" with a footnote. Rendered to markdown and to long-format CSV rows.
+
+Comparison columns: ``diff`` prints ours − paper (PSNR, SSIM, LPIPS, MSE, FLIP, %); ``ratio``
+prints ours / paper as ×r (counts, minutes, FPS: quantities compared by scale).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Literal
+
+from reports.runs import Value
+
+SUPERSCRIPT = str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")
+DASH = "—"
+
+
+# ---- number formats ---------------------------------------------------------------------------
+
+def fixed(decimals: int) -> Callable[[float], str]:
+    return lambda x: f"{x:.{decimals}f}"
+
+
+def count(x: float) -> str:
+    """Gaussian counts as the paper prints them: 4, 1024, 104K, 2593K."""
+    return f"{x:.0f}" if abs(x) < 10_000 else f"{x / 1000:.0f}K"
+
+
+def sig(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def sci(x: float) -> str:
+    return f"{x:.1e}"
+
+
+def percent(x: float) -> str:
+    return f"{100 * x:.1f}%"
+
+
+# ---- model ------------------------------------------------------------------------------------
+
+@dataclass
+class Column:
+    """A value column; with ``compare`` it is followed by a paper column and a Δ (or ×) column."""
+
+    key: str
+    label: str
+    fmt: Callable[[float], str]
+    better: Literal["higher", "lower"] | None = None
+    compare: Literal["diff", "ratio"] | None = None
+    decimals: int = 2          # of the Δ column
+    show_std: bool = False
+    group: str = ""            # row-wise ranking: columns of the same group compete
+    delta_fmt: Callable[[float], str] | None = None
+
+    def delta_text(self, ours: float, paper: float) -> str:
+        if self.compare == "ratio":
+            return f"×{ours / paper:.3g}" if paper else ""
+        d = ours - paper
+        return self.delta_fmt(d) if self.delta_fmt else f"{d:+.{self.decimals}f}"
+
+
+@dataclass
+class Row:
+    keys: list[str]                                       # key-column cells (display text)
+    values: dict[str, Value]                              # column key -> ours
+    paper: dict[str, Value] = field(default_factory=dict)  # column key -> the paper's
+    rank_group: tuple = ()                                # rows that compete (column ranking)
+    label_notes: list[str] = field(default_factory=list)  # footnotes on the row's label (last key cell)
+    no_compare: dict[str, str] = field(default_factory=dict)  # column key -> why no Δ
+    info: dict[str, str] = field(default_factory=dict)    # plain text columns (device, flow)
+    csv: dict[str, object] = field(default_factory=dict)  # machine identity fields for the CSV
+
+
+@dataclass
+class Table:
+    """One markdown table (a block of a section)."""
+
+    title: str
+    key_columns: list[str]
+    columns: list[Column]
+    rows: list[Row]
+    info_columns: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    rank: Literal["column", "row", "none"] = "column"
+
+    # -- ranking ----------------------------------------------------------------------------
+    def ranks(self) -> dict[tuple[int, str], int]:
+        """(row index, column key) -> 1 (best) or 2 (second), among competing cells with a value.
+        Ties (equal as printed) share a rank. A set with a single value is not ranked."""
+        sets: list[tuple[list[tuple[int, str]], Column]] = []
+        if self.rank == "column":
+            for c in self.columns:
+                if not c.better:
+                    continue
+                groups: dict[tuple, list[tuple[int, str]]] = {}
+                for i, r in enumerate(self.rows):
+                    groups.setdefault(r.rank_group, []).append((i, c.key))
+                sets += [(cells, c) for cells in groups.values()]
+        elif self.rank == "row":
+            for i, r in enumerate(self.rows):
+                by_group: dict[str, list[Column]] = {}
+                for c in self.columns:
+                    if c.better:
+                        by_group.setdefault(c.group, []).append(c)
+                for cols in by_group.values():
+                    sets.append(([(i, c.key) for c in cols], cols[0]))
+        out: dict[tuple[int, str], int] = {}
+        for cells, col in sets:
+            scored = []   # (mean, text as printed, cell)
+            for i, k in cells:
+                v = self.rows[i].values.get(k)
+                if v is not None and v.ok:
+                    scored.append((v.mean, col.fmt(v.mean), (i, k)))
+            if len(scored) < 2:
+                continue
+            best_first = sorted(scored, key=lambda s: s[0], reverse=(col.better == "higher"))
+            texts = list(dict.fromkeys(t for _, t, _ in best_first))  # equal as printed = tie
+            for _, t, cell in scored:
+                if texts.index(t) < 2:
+                    out[cell] = texts.index(t) + 1
+        return out
+
+    # -- markdown ---------------------------------------------------------------------------
+    def markdown(self) -> str:
+        notes = Footnotes()
+        ranks = self.ranks()
+        header = list(self.key_columns)
+        for c in self.columns:
+            header.append(c.label)
+            if c.compare:
+                header += ["paper", "×paper" if c.compare == "ratio" else "Δ"]
+        header += self.info_columns
+        n_text_right = len(self.info_columns)
+        align = [":--" if i < len(self.key_columns) or i >= len(header) - n_text_right else "--:"
+                 for i in range(len(header))]  # text left, numbers right
+        lines = ["| " + " | ".join(_esc(h) for h in header) + " |", "|" + "|".join(align) + "|"]
+        for i, row in enumerate(self.rows):
+            cells = list(row.keys)
+            if cells:  # the row's label is its last key cell
+                cells[-1] = cells[-1] + "".join(notes.mark(n) for n in row.label_notes)
+            for c in self.columns:
+                v = row.values.get(c.key, Value.absent("no result in the runs directory"))
+                cells.append(_value_text(v, c, ranks.get((i, c.key)), notes))
+                if c.compare:
+                    p = row.paper.get(c.key, Value.absent("not in the paper"))
+                    cells.append(_value_text(p, Column(c.key, "", c.fmt), None, notes))
+                    if c.key in row.no_compare:
+                        cells.append("n/c" + notes.mark(row.no_compare[c.key]))
+                    elif v.ok and p.ok:
+                        cells.append(c.delta_text(v.mean, p.mean))
+                    else:
+                        cells.append("")
+            cells += [row.info.get(k, "") for k in self.info_columns]
+            lines.append("| " + " | ".join(_esc(x) for x in cells) + " |")
+        out = []
+        if self.title:
+            out.append(f"**{self.title}**" if not self.title.startswith("#") else self.title)
+            out.append("")
+        out += lines
+        foot = notes.lines()
+        if foot or self.notes:
+            out.append("")
+        out += [f"{n}" for n in foot]
+        out += [f"- {n}" for n in self.notes]
+        return "\n".join(out)
+
+    # -- CSV --------------------------------------------------------------------------------
+    def records(self) -> list[dict[str, object]]:
+        """Long-format rows: identity fields, then per column value, std, n, paper, Δ / ratio,
+        rank (1 best, 2 second) and note (the reason for an absent value, or notes)."""
+        ranks = self.ranks()
+        recs = []
+        for i, row in enumerate(self.rows):
+            rec: dict[str, object] = dict(row.csv)
+            for c in self.columns:
+                v = row.values.get(c.key, Value.absent("no result in the runs directory"))
+                rec[c.key] = v.mean if v.ok else None
+                if c.show_std:
+                    rec[f"{c.key}_std"] = v.std
+                rec[f"{c.key}_n"] = v.n if v.ok else 0
+                if c.compare:
+                    p = row.paper.get(c.key, Value.absent("not in the paper"))
+                    rec[f"paper_{c.key}"] = p.mean if p.ok else None
+                    comparable = v.ok and p.ok and c.key not in row.no_compare and (c.compare != "ratio" or p.mean)
+                    name = f"ratio_{c.key}" if c.compare == "ratio" else f"delta_{c.key}"
+                    rec[name] = (v.mean / p.mean if c.compare == "ratio" else v.mean - p.mean) if comparable else None
+                if c.better:
+                    rec[f"{c.key}_rank"] = ranks.get((i, c.key))
+                rec[f"{c.key}_note"] = "; ".join(([v.reason] if v.reason else []) + list(v.notes)
+                                                 + ([row.no_compare[c.key]] if c.key in row.no_compare else []))
+            for k in self.info_columns:
+                rec[k.lower().replace(" ", "_")] = row.info.get(k, "")
+            rec["row_notes"] = "; ".join(row.label_notes)
+            recs.append(rec)
+        return recs
+
+
+def _value_text(v: Value, c: Column, rank: int | None, notes: "Footnotes") -> str:
+    if not v.ok:
+        return DASH + notes.mark(v.reason or "no value")
+    text = c.fmt(v.mean)
+    if c.show_std and v.std is not None:
+        text += f" ± {c.fmt(v.std)}"
+    if rank == 1:
+        text = f"**{text}**"
+    elif rank == 2:
+        text = f"*{text}*"
+    return text + "".join(notes.mark(n) for n in v.notes)
+
+
+def _esc(text: str) -> str:
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+class Footnotes:
+    """Numbered notes of one table; the same text gets the same number."""
+
+    def __init__(self) -> None:
+        self.texts: list[str] = []
+
+    def mark(self, text: str) -> str:
+        if text not in self.texts:
+            self.texts.append(text)
+        return str(self.texts.index(text) + 1).translate(SUPERSCRIPT)
+
+    def lines(self) -> list[str]:
+        return [f"{str(i + 1).translate(SUPERSCRIPT)} {_esc(t)}  " for i, t in enumerate(self.texts)]
+
+
+@dataclass
+class Section:
+    """A report section that is one paper table: markdown blocks and one CSV."""
+
+    name: str                   # CSV file stem, e.g. "table2_realworld"
+    title: str
+    intro: list[str] = field(default_factory=list)
+    blocks: list[Table] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    records: list[dict[str, object]] | None = None   # CSV rows; default: the blocks' records
+    empty_reason: str | None = None                  # why nothing could be tabulated
+
+    def csv_records(self) -> list[dict[str, object]]:
+        if self.records is not None:
+            return self.records
+        return [rec for b in self.blocks for rec in b.records()]
+
+    def markdown(self, level: int = 2, csv_link: str | None = None) -> str:
+        out = [f"{'#' * level} {self.title}", ""]
+        out += [p + "\n" for p in self.intro]
+        if self.empty_reason:
+            out += [f"Not produced: {self.empty_reason}", ""]
+            return "\n".join(out)
+        for b in self.blocks:
+            out += [b.markdown(), ""]
+        out += [f"- {n}" for n in self.notes]
+        if csv_link:
+            out += ["", f"Machine-readable: [{csv_link}]({csv_link})"]
+        return "\n".join(out).rstrip() + "\n"

@@ -1,0 +1,416 @@
+"""The paper's Tables 1–5 built from run results, each value beside the paper's.
+
+Rows are (method, budget, preset); a reduced preset (``cpu``) is labelled on its row, explained in a
+footnote and ranked only against rows of the same preset (and, for speed, the same device).
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass, replace
+from typing import Iterable
+
+from protocols.results import RunResult
+from reports.paper import (DATASET_SCENES, PATTERNS, GROUP_LABELS, GROUP_ORDER, PaperTables, budget_group,
+                           budget_rank, dataset_label, dataset_rank, method_label, method_rank, paper_key,
+                           row_label, scene_rank)
+from reports.runs import (Value, aggregate, consistency_getter, field_getter, flow_estimator, is_pattern,
+                          metric, one_line, pattern_cap, preset_description)
+from reports.table import Column, Row, Section, Table, count, fixed
+
+RowKey = tuple[str, str, str]  # (method, budget, preset)
+
+PSNR = metric("psnr")
+SSIM = metric("ssim")
+LPIPS = metric("lpips")
+NUM_GS = field_getter("num_gaussians", "#GS")
+TRAIN_MIN = field_getter("train_seconds", "train time", 1 / 60)
+FPS = field_getter("render_fps", "render FPS")
+
+
+@dataclass
+class Context:
+    """What every table builder shares: the paper's numbers and the presets' descriptions."""
+
+    paper: PaperTables
+    presets: dict[str, str]  # reduced preset -> footnote text
+
+    @staticmethod
+    def of(runs: list[RunResult], paper: PaperTables) -> "Context":
+        by: dict[str, list[RunResult]] = defaultdict(list)
+        for r in runs:
+            by[r.preset].append(r)
+        presets = {}
+        for p, rs in by.items():
+            if p != "paper":
+                desc = preset_description(rs)
+                presets[p] = (f"[{p}] = the {p} preset{f' ({desc})' if desc else ''}, a reduced protocol, not "
+                              f"the paper's: its Δ to the paper is context, not a reproduction check")
+        return Context(paper, presets)
+
+    def paper_value(self, x: float | None, where: str) -> Value:
+        if self.paper.error:
+            return Value.absent(self.paper.error)
+        return Value.of(x, f"not in the paper's {where}")
+
+    def label(self, key: RowKey) -> tuple[str, list[str]]:
+        method, budget, preset = key
+        text = row_label(method, budget)
+        if preset != "paper":
+            return f"{text} [{preset}]", [self.presets.get(preset, f"[{preset}] = a reduced preset")]
+        return text, []
+
+
+def row_order(key: RowKey) -> tuple:
+    method, budget, preset = key
+    return (GROUP_ORDER.index(budget_group(budget)), budget_rank(budget), method_rank(method),
+            preset != "paper", preset)
+
+
+def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
+    """Say when a table mixes protocol presets, devices or renderer backends."""
+    runs = list(runs)
+    notes = []
+    presets = sorted({r.preset for r in runs})
+    if len(presets) > 1:
+        notes.append(f"{what} mixes protocol presets ({', '.join(presets)}); rows of a reduced preset are "
+                     f"labelled [preset] and ranked only among themselves.")
+    elif presets and presets[0] != "paper":
+        notes.append(f"Every row uses the reduced [{presets[0]}] preset, not the paper's protocol.")
+    devices = sorted({str(r.render_device or r.versions.get("device")) for r in runs if r.status == "ok"}
+                     - {"None"})
+    if len(devices) > 1:
+        notes.append(f"{what} mixes devices ({', '.join(devices)}).")
+    backends = sorted({r.versions.get("backend") for r in runs if r.versions.get("backend")})
+    if len(backends) > 1:
+        notes.append(f"{what} mixes renderer backends ({', '.join(backends)}).")
+    return notes
+
+
+def _by(runs: Iterable[RunResult], *fields_) -> dict[tuple, list[RunResult]]:
+    out: dict[tuple, list[RunResult]] = defaultdict(list)
+    for r in runs:
+        out[tuple(getattr(r, f) for f in fields_)].append(r)
+    return out
+
+
+def _csv_id(key: RowKey, **extra) -> dict[str, object]:
+    method, budget, preset = key
+    return {**extra, "method": method, "budget": budget, "preset": preset, "label": row_label(method, budget)}
+
+
+def _modal_n(values: list[Value]) -> int:
+    ns = Counter(v.n for v in values if v.ok)
+    return ns.most_common(1)[0][0] if ns else 0
+
+
+# ---- Table 1 ----------------------------------------------------------------------------------
+
+def table1(runs: list[RunResult], ctx: Context) -> Section:
+    sec = Section("table1_patterns", "Table 1 — 2D pattern fits (PSNR ↑, capped #Gaussians)")
+    pats = [r for r in runs if is_pattern(r)]
+    if not pats:
+        sec.empty_reason = ("no 2D pattern fits (dataset=patterns) below the runs directory; "
+                            "`python -m protocols.run +experiment=patterns` makes them.")
+        return sec
+    sec.intro.append("Mean ± std over seeds of the test-view PSNR of each fit; one block per pattern, one row "
+                     "per Gaussian cap, methods side by side (the paper's table transposed so that its value "
+                     "sits beside ours). Best of a row in bold, second in italics (among methods of one preset).")
+    cells: dict[tuple, list[RunResult]] = defaultdict(list)
+    no_cap = []
+    for r in pats:
+        cap = pattern_cap(r)
+        if cap is None:
+            no_cap.append(r)
+            continue
+        cells[(r.scene, cap, r.method, r.preset)].append(r)
+    records = []
+    patterns = sorted({k[0] for k in cells}, key=lambda p: (PATTERNS.index(p) if p in PATTERNS else 99, p))
+    for pattern in patterns:
+        caps = sorted({k[1] for k in cells if k[0] == pattern})
+        cols_keys = sorted({(k[2], k[3]) for k in cells if k[0] == pattern},
+                           key=lambda mp: (mp[1] != "paper", mp[1], method_rank(mp[0])))
+        columns = []
+        for m, p in cols_keys:
+            label = method_label(m) + ("" if p == "paper" else f" [{p}]")
+            columns.append(Column(f"{m}@{p}", label, fixed(2), "higher", "diff", 2, show_std=True, group=p))
+        rows = []
+        for cap in caps:
+            row = Row([str(cap)], {}, csv={"pattern": pattern, "cap": cap})
+            for m, p in cols_keys:
+                rs = cells.get((pattern, cap, m, p), [])
+                v = aggregate(rs, PSNR)
+                row.values[f"{m}@{p}"] = v
+                row.paper[f"{m}@{p}"] = ctx.paper_value(ctx.paper.t1(pattern, m, cap), "Table 1")
+            rows.append(row)
+        n = _modal_n([v for row in rows for v in row.values.values()])
+        for row in rows:  # a cell with another seed count than the table's says so
+            for k, v in row.values.items():
+                if v.ok and v.n != n and not v.notes:
+                    row.values[k] = replace(v, notes=(f"{v.n} seed{'s' if v.n != 1 else ''}",))
+        notes = [f"± is the standard deviation over seeds; n = {n} seed{'s' if n != 1 else ''} per cell unless "
+                 "a footnote says otherwise."] if n else []
+        notes += [ctx.presets[p] for p in sorted({p for _, p in cols_keys}) if p in ctx.presets]
+        sec.blocks.append(Table(f"{pattern}", ["#GS cap"], columns, rows, notes=notes, rank="row"))
+        for (pt, cap, m, p), rs in sorted(cells.items()):
+            if pt != pattern:
+                continue
+            v = aggregate(rs, PSNR)
+            gs = aggregate(rs, NUM_GS)
+            pv = ctx.paper.t1(pattern, m, cap)
+            records.append({"pattern": pattern, "method": m, "preset": p, "cap": cap, "psnr": v.mean,
+                            "psnr_std": v.std, "n_seeds": v.n, "paper_psnr": pv,
+                            "delta_psnr": (v.mean - pv) if v.ok and pv is not None else None,
+                            "num_gaussians": gs.mean, "note": "; ".join(([v.reason] if v.reason else [])
+                                                                        + list(v.notes))})
+    sec.records = records
+    sec.notes += mix_notes(pats)
+    if no_cap:
+        sec.notes.append(f"{len(no_cap)} pattern run(s) record no Gaussian cap and are left out: "
+                         + ", ".join(f"{r.scene}/{r.method}/{r.budget}/seed{r.seed}" for r in no_cap[:10]))
+    return sec
+
+
+# ---- Table 2 ----------------------------------------------------------------------------------
+
+T2_COLUMNS = [
+    Column("psnr", "PSNR↑", fixed(2), "higher", "diff", 2),
+    Column("ssim", "SSIM↑", fixed(3), "higher", "diff", 3),
+    Column("lpips", "LPIPS↓", fixed(3), "lower", "diff", 3),
+    Column("num_gaussians", "#GS↓", count, "lower", "ratio"),
+]
+T2_GETTERS = {"psnr": PSNR, "ssim": SSIM, "lpips": LPIPS, "num_gaussians": NUM_GS}
+
+
+def expected_scenes(dataset: str, runs: list[RunResult]) -> list[str]:
+    """The scenes a dataset mean is over: the paper's list for its datasets, else every scene seen."""
+    if dataset in DATASET_SCENES:
+        return list(DATASET_SCENES[dataset])
+    return sorted({r.scene for r in runs if r.dataset == dataset})
+
+
+@dataclass
+class DatasetMeans:
+    """Table 2's numbers for one dataset: per row, the mean over the common scenes, or why not."""
+
+    dataset: str
+    expected: list[str]
+    common: dict[str, list[str]]            # preset -> scenes every row of that preset ran
+    values: dict[RowKey, dict[str, Value]]  # row -> metric -> mean over common scenes
+    subset_note: dict[RowKey, str]
+    extra_scenes: list[str]
+    runs: list[RunResult]
+
+
+def dataset_means(dataset: str, real: list[RunResult], getters: dict) -> DatasetMeans:
+    runs = [r for r in real if r.dataset == dataset]
+    expected = expected_scenes(dataset, runs)
+    extra = sorted({r.scene for r in runs} - set(expected))
+    cell = _by(runs, "method", "budget", "preset", "scene")
+    keys = sorted({(r.method, r.budget, r.preset) for r in runs}, key=row_order)
+    psnr = {(k, s): aggregate(cell.get((*k, s), []), PSNR) for k in keys for s in expected}
+    common: dict[str, list[str]] = {}
+    for preset in sorted({k[2] for k in keys}):
+        ran = [{s for s in expected if psnr[(k, s)].ok} for k in keys if k[2] == preset]
+        ran = [s for s in ran if s]
+        common[preset] = [s for s in expected if ran and all(s in x for x in ran)]
+    values: dict[RowKey, dict[str, Value]] = {}
+    subset: dict[RowKey, str] = {}
+    for k in keys:
+        scenes = common[k[2]]
+        if not any(psnr[(k, s)].ok for s in expected):
+            reasons = {s: psnr[(k, s)].reason for s in expected}
+            why = _scene_reasons(reasons)
+            values[k] = {m: Value.absent(why) for m in getters}
+            continue
+        if not scenes:
+            why = (f"no {dataset_label(dataset)} scene was run by every row of this preset, so no comparable "
+                   "mean (per-scene values in Table 5)")
+            values[k] = {m: Value.absent(why) for m in getters}
+            continue
+        values[k] = {m: _scene_mean([aggregate(cell.get((*k, s), []), g) for s in scenes], scenes)
+                     for m, g in getters.items()}
+        if len(scenes) < len(expected):
+            missing = [s for s in expected if s not in scenes]
+            subset[k] = (f"mean over {len(scenes)} of {len(expected)} scenes ({', '.join(scenes)}), those every "
+                         f"row of this preset ran; not in the mean: {', '.join(missing)} (Table 5 says why); "
+                         f"the paper's value is over all {len(expected)}")
+    return DatasetMeans(dataset, expected, common, values, subset, extra, runs)
+
+
+def _scene_mean(values: list[Value], scenes: list[str]) -> Value:
+    bad = [(s, v.reason) for s, v in zip(scenes, values) if not v.ok]
+    if bad:
+        return Value.absent(_scene_reasons(dict(bad)))
+    notes = tuple(dict.fromkeys(f"{s}: {n}" for s, v in zip(scenes, values) for n in v.notes))
+    return Value(sum(v.mean for v in values) / len(values), None, len(values), None, notes)
+
+
+def _scene_reasons(reasons: dict[str, str | None]) -> str:
+    distinct = set(reasons.values())
+    if len(distinct) == 1:
+        why = next(iter(distinct)) or "no value"
+        return why if len(reasons) == 1 else f"{why} (every scene)"
+    return one_line("; ".join(f"{s}: {w}" for s, w in reasons.items()), 400)
+
+
+def table2(runs: list[RunResult], ctx: Context) -> Section:
+    sec = Section("table2_realworld", "Table 2 — real scenes, dataset means (PSNR, SSIM, LPIPS, #GS)")
+    real = [r for r in runs if not is_pattern(r)]
+    if not real:
+        sec.empty_reason = "no real-scene runs below the runs directory."
+        return sec
+    sec.intro.append("Per dataset, the mean over scenes of each scene's test-view mean (seeds averaged first). "
+                     "A mean is only over scenes that every row of the same preset ran; a mean over fewer "
+                     "scenes than the dataset has is footnoted. Groups as in the paper: extreme sparse (5%), "
+                     "sparse (mini, light), dense (full). Best of a group in bold, second in italics.")
+    for ds in sorted({r.dataset for r in real}, key=dataset_rank):
+        dm = dataset_means(ds, real, T2_GETTERS)
+        rows = []
+        for k, vals in dm.values.items():
+            label, notes = ctx.label(k)
+            if k in dm.subset_note:
+                notes.append(dm.subset_note[k])
+            method, budget, preset = k
+            group = budget_group(budget)
+            row = Row([GROUP_LABELS[group], label], dict(vals), rank_group=(group, preset), label_notes=notes,
+                      csv=_csv_id(k, dataset=ds, group=group, scenes=";".join(dm.common.get(preset, []))))
+            for c in T2_COLUMNS:
+                row.paper[c.key] = ctx.paper_value(ctx.paper.t2(method, budget, ds, c.key), "Table 2")
+            nets = {r.lpips_net for r in dm.runs if (r.method, r.budget, r.preset) == k and r.lpips_net
+                    and "lpips" in r.metrics}
+            odd = sorted(n for n in nets if "vgg" not in n.lower())
+            if odd:
+                row.no_compare["lpips"] = f"LPIPS net {', '.join(odd)}; the paper's is VGG"
+            rows.append(row)
+        notes = []
+        nets = sorted({r.lpips_net for r in dm.runs if r.lpips_net and "lpips" in r.metrics})
+        if nets:
+            notes.append(f"LPIPS computed with {', '.join(nets)}.")
+        if dm.extra_scenes:
+            notes.append(f"Scenes outside the paper's {dataset_label(ds)} list, not in these means: "
+                         f"{', '.join(dm.extra_scenes)} (see Table 5).")
+        notes += mix_notes(dm.runs, "This block")
+        sec.blocks.append(Table(f"{dataset_label(ds)} ({ds})", ["Group", "Method"], list(T2_COLUMNS), rows,
+                                notes=notes))
+    ran = {(r.method, r.budget) for r in real}
+    if not ctx.paper.error:
+        others = [k for k in ctx.paper.table2_rows if not any(k == paper_key(m, b) for m, b in ran)]
+        if others:
+            sec.notes.append("The paper's Table 2 also has rows not run here: " + ", ".join(others)
+                             + " (values in reports/paper_tables/table2_realworld.csv).")
+    return sec
+
+
+# ---- Tables 3, 4, 5: one row per scene × method -------------------------------------------------
+
+def _scene_rows(real: list[RunResult], getters: dict, columns: list[Column], ctx: Context, paper_lookup,
+                rank_extra=lambda rs: (), info=lambda rs: {}) -> list[tuple[str, Row, list[RunResult]]]:
+    """(dataset, row, its runs) for each (dataset, scene, method, budget, preset) that has any run."""
+    cell = _by(real, "dataset", "scene", "method", "budget", "preset")
+    out = []
+    for (ds, scene, m, b, p), rs in sorted(cell.items(), key=lambda kv: (dataset_rank(kv[0][0]), scene_rank(
+            kv[0][0], kv[0][1]), row_order(kv[0][2:]))):
+        label, notes = ctx.label((m, b, p))
+        row = Row([scene, label], {c.key: aggregate(rs, getters[c.key]) for c in columns},
+                  rank_group=(scene, budget_group(b), p, *rank_extra(rs)), label_notes=notes,
+                  info=info(rs), csv=_csv_id((m, b, p), dataset=ds, scene=scene))
+        for c in columns:
+            row.paper[c.key] = paper_lookup(m, b, scene, c.key)
+        out.append((ds, row, rs))
+    return out
+
+
+def _devices(rs: list[RunResult]) -> str:
+    devs = sorted({str(r.render_device) for r in rs if r.render_device})
+    return ", ".join(devs) if devs else "not recorded"
+
+
+def table3(runs: list[RunResult], ctx: Context) -> Section:
+    sec = Section("table3_speed", "Table 3 — training minutes and rendering speed")
+    real = [r for r in runs if not is_pattern(r)]
+    if not real:
+        sec.empty_reason = "no real-scene runs below the runs directory."
+        return sec
+    sec.intro.append("Train minutes exclude evaluation; FPS is the median over repeats of rendering the test "
+                     "views after a warm-up, on the device named. ×paper is ours / paper. Ranked within a "
+                     "scene among rows of the same preset and device (all budgets compete, as in the paper).")
+    cols = [Column("train_minutes", "Train min↓", fixed(1), "lower", "ratio"),
+            Column("render_fps", "FPS↑", fixed(1), "higher", "ratio")]
+    getters = {"train_minutes": TRAIN_MIN, "render_fps": FPS}
+    rows = _scene_rows(real, getters, cols, ctx,
+                       lambda m, b, s, k: ctx.paper_value(ctx.paper.t3(m, b, s, k), "Table 3"),
+                       rank_extra=lambda rs: (_devices(rs),),
+                       info=lambda rs: {"Device": _devices(rs),
+                                        "Steps": ", ".join(sorted({str(r.steps) for r in rs if r.steps})) or "—"})
+    for _, row, _ in rows:  # the paper ranks all budgets together
+        row.rank_group = (row.rank_group[0], *row.rank_group[2:])
+    notes = ["The paper's times are on its own GPU (not stated) at 30K steps; a ratio across devices "
+             "measures the hardware as much as the method."]
+    notes += mix_notes(real)
+    sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Device", "Steps"], notes))
+    return sec
+
+
+def table4(runs: list[RunResult], ctx: Context) -> Section:
+    sec = Section("table4_consistency", "Table 4 — view consistency (PSNR, flow-warped MSE and FLIP, i → i+7)")
+    real = [r for r in runs if not is_pattern(r) and (r.consistency or (r.status != "ok" and
+                                                                       _wants_consistency(r)))]
+    if not real:
+        sec.empty_reason = ("no run computed view consistency (`result.consistency`); the `consistency` "
+                            "experiment (eval.consistency=true) does.")
+        return sec
+    sec.intro.append("PSNR of the test views; MSE (summed over RGB) and FLIP between frame i warped onto frame "
+                     "i+7 and frame i+7 of a 128-frames-per-segment interpolated video, over valid pixels. "
+                     "Ranked within a scene among rows of the same preset and flow estimator.")
+    cols = [Column("psnr", "PSNR↑", fixed(2), "higher", "diff", 2),
+            Column("mse", "MSE↓", fixed(4), "lower", "diff", 4),
+            Column("flip", "FLIP7↓", fixed(3), "lower", "diff", 3)]
+    getters = {k: consistency_getter(k) for k in ("psnr", "mse", "flip")}
+    rows = _scene_rows(real, getters, cols, ctx,
+                       lambda m, b, s, k: ctx.paper_value(ctx.paper.t4(m, b, s, k), "Table 4"),
+                       rank_extra=lambda rs: (_flows(rs),), info=lambda rs: {"Flow": _flows(rs)})
+    for _, row, rs in rows:
+        names = {r.consistency.get("flip_name") for r in rs if r.consistency} - {None, "flip"}
+        if names:
+            row.no_compare["flip"] = f"{', '.join(sorted(names))}: minimum-subtracted FLIP, not the paper's"
+    notes = ["The paper's flow is RAFT; ours is named per row (geometric: exact, from rendered depth and the "
+             "known camera motion; opencv: DIS optical flow). Numbers from different flow estimators are not "
+             "comparable, so a Δ to the paper is indicative."]
+    notes += mix_notes(real)
+    sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Flow"], notes))
+    return sec
+
+
+def _wants_consistency(r: RunResult) -> bool:
+    ev = (r.config or {}).get("eval") or {}
+    return bool(ev.get("consistency")) if isinstance(ev, dict) else False
+
+
+def _flows(rs: list[RunResult]) -> str:
+    flows = sorted({flow_estimator(r) for r in rs if r.consistency})
+    return ", ".join(flows) if flows else "—"
+
+
+def table5(runs: list[RunResult], ctx: Context) -> Section:
+    sec = Section("table5_per_scene", "Table 5 — per-scene PSNR and number of Gaussians")
+    real = [r for r in runs if not is_pattern(r)]
+    if not real:
+        sec.empty_reason = "no real-scene runs below the runs directory."
+        return sec
+    sec.intro.append("Test-view PSNR and final Gaussian count per scene (mean over seeds). Best PSNR of a "
+                     "scene within a budget group in bold, second in italics. ×paper is ours / paper.")
+    cols = [Column("psnr", "PSNR↑", fixed(2), "higher", "diff", 2),
+            Column("num_gaussians", "#GS", count, None, "ratio")]
+    rows = _scene_rows(real, {"psnr": PSNR, "num_gaussians": NUM_GS}, cols, ctx,
+                       lambda m, b, s, k: ctx.paper_value(ctx.paper.t5(m, b, s, k), "Table 5"))
+    for ds in sorted({d for d, _, _ in rows}, key=dataset_rank):
+        block = [r for d, r, _ in rows if d == ds]
+        dsr = [r for r in real if r.dataset == ds]
+        sec.blocks.append(Table(f"{dataset_label(ds)} ({ds})", ["Scene", "Method"], cols, block,
+                                notes=mix_notes(dsr, "This block")))
+    return sec
+
+
+def failed_runs(runs: list[RunResult]) -> list[RunResult]:
+    return [r for r in runs if r.status != "ok"]

@@ -1,0 +1,134 @@
+"""Units of the report: ranking, footnotes, formats, aggregation, the paper's numbers, Pareto fronts."""
+
+from __future__ import annotations
+
+import pytest
+
+from protocols.results import RunResult
+from reports.paper import load_paper, paper_key, row_label
+from reports.plots import pareto_front
+from reports.runs import Value, aggregate, consistency_getter, metric, pattern_cap
+from reports.table import Column, Row, Table, count, fixed
+from reports.tables import PSNR, dataset_means
+
+
+def _table(values: list[float | None], better: str = "higher", groups=None) -> Table:
+    col = Column("psnr", "PSNR", fixed(2), better, "diff", 2)
+    rows = [Row([f"m{i}"], {"psnr": Value(v, n=1) if v is not None else Value.absent("failed: boom")},
+                {"psnr": Value(20.0, n=1)}, rank_group=(groups[i] if groups else ()))
+            for i, v in enumerate(values)]
+    return Table("", ["Method"], [col], rows)
+
+
+def test_rank_best_second_ties_and_direction():
+    t = _table([25.0, 26.004, 26.0, 24.0])
+    r = t.ranks()
+    assert r[(1, "psnr")] == 1 and r[(2, "psnr")] == 1  # equal as printed: a tie
+    assert r[(0, "psnr")] == 2 and (3, "psnr") not in r
+    low = _table([0.3, 0.2, 0.25], better="lower").ranks()
+    assert low == {(1, "psnr"): 1, (2, "psnr"): 2}
+
+
+def test_rank_groups_and_single_values_unranked():
+    t = _table([25.0, 26.0, 30.0, None], groups=["a", "a", "b", "b"])
+    r = t.ranks()
+    assert r == {(1, "psnr"): 1, (0, "psnr"): 2}  # group b has one value: nothing to rank
+
+
+def test_markdown_cells_footnotes_and_delta():
+    md = _table([25.0, None, 22.5]).markdown()
+    lines = md.splitlines()
+    assert lines[0] == "| Method | PSNR | paper | Δ |"
+    assert "| m0 | **25.00** | 20.00 | +5.00 |" in md
+    assert "| m1 | —¹ | 20.00 |  |" in md
+    assert "| m2 | *22.50* | 20.00 | +2.50 |" in md
+    assert "¹ failed: boom" in md
+
+
+def test_ratio_columns_and_pipe_escape():
+    col = Column("n", "#GS", count, None, "ratio")
+    t = Table("", ["Method"], [col], [Row(["a|b"], {"n": Value(2_500_000.0, n=1)}, {"n": Value(2_000_000.0)})])
+    md = t.markdown()
+    assert "| a\\|b | 2500K | 2000K | ×1.25 |" in md
+    assert t.records()[0]["ratio_n"] == pytest.approx(1.25)
+    assert count(4) == "4" and count(104_000) == "104K"
+
+
+def test_no_compare_marks_delta():
+    t = _table([25.0])
+    t.rows[0].no_compare["psnr"] = "LPIPS net alex; the paper's is VGG"
+    md = t.markdown()
+    assert "n/c¹" in md and "¹ LPIPS net alex" in md
+    assert t.records()[0]["delta_psnr"] is None
+
+
+def _run(seed: int, psnr: float | None, status: str = "ok", **kw) -> RunResult:
+    return RunResult(method="softmax_gs", dataset="mipnerf360", scene="bicycle", budget="full", seed=seed,
+                     status=status, metrics={} if psnr is None else {"psnr": psnr}, **kw)
+
+
+def test_aggregate_seeds_partial_and_absent():
+    v = aggregate([_run(0, 20.0), _run(1, 22.0)], PSNR)
+    assert v.mean == 21.0 and v.std == pytest.approx(2 ** 0.5) and v.n == 2 and not v.notes
+    part = aggregate([_run(0, 20.0), _run(1, None, "failed", error="ValueError: x")], PSNR)
+    assert part.mean == 20.0 and part.notes == ("1 of 2 seeds; failed: ValueError: x",)
+    none = aggregate([_run(0, None, "failed", error="E: a"), _run(1, None, "failed", error="E: b")], PSNR)
+    assert not none.ok and none.reason == "seed 0: failed: E: a; seed 1: failed: E: b"
+    nan = aggregate([_run(0, float("nan"))], PSNR)
+    assert not nan.ok and "nan" in nan.reason
+    lp = aggregate([_run(0, 20.0, missing={"lpips": "weights absent"})], metric("lpips"))
+    assert lp.reason == "LPIPS missing: weights absent"
+    assert aggregate([], PSNR).reason == "no result in the runs directory"
+
+
+def test_consistency_values_and_missing():
+    r = _run(0, 25.0, consistency={"psnr": 25.1, "mse": {"missing": "empty mask"}, "flip_minsub": 0.01,
+                                   "flip_name": "flip_minsub", "estimator": "opencv"})
+    assert consistency_getter("psnr")(r) == 25.1
+    assert consistency_getter("mse")(r).reason == "mse missing: empty mask"
+    assert consistency_getter("flip")(r) == 0.01
+    assert consistency_getter("mse")(_run(0, 25.0)).reason == "view consistency not computed"
+
+
+def test_pattern_cap_conventions():
+    base = dict(method="3dgs", dataset="patterns", scene="circle4", seed=0)
+    assert pattern_cap(RunResult(budget="cap", config={"cap": 64}, **base)) == 64
+    assert pattern_cap(RunResult(budget="cap256", config={"budget": {"cap": 256}}, **base)) == 256
+    assert pattern_cap(RunResult(budget="cap1024", **base)) == 1024
+    assert pattern_cap(RunResult(budget="cap", num_gaussians=16, **base)) == 16
+
+
+def test_paper_numbers():
+    p = load_paper()
+    assert p.error is None
+    assert p.t1("oval4", "softmax_gs", 4096) == 50.37
+    assert p.t2("softmax_gs", "5pct", "tandt", "psnr") == 22.0
+    assert p.t2("3dgs", "full", "mipnerf360", "num_gaussians") == 2593000
+    assert p.t3("softmax_gs", "mini", "bicycle", "render_fps") == 152
+    assert p.t4("3dgs", "full", "train", "flip") == 0.048
+    assert p.t5("softmax_gs", "full", "drjohnson", "num_gaussians") == 2900000
+    assert p.t2("gef_only", "full", "mipnerf360", "psnr") is None
+    assert paper_key("softmax_gs", "cap") is None and paper_key("3dgs", "light") == "3dgs_light"
+    assert row_label("softmax_gs", "5pct") == "Softmax-GS 5%" and row_label("3dgs", "full") == "3D GS"
+    broken = load_paper("/nonexistent")
+    assert broken.error and "not readable" in broken.error and broken.t1("circle4", "3dgs", 4) is None
+
+
+def test_dataset_means_over_common_scenes_only():
+    def r(m, scene, psnr, status="ok"):
+        return RunResult(method=m, dataset="tandt", scene=scene, budget="full", seed=0, status=status,
+                         error=None if status == "ok" else "boom", metrics={"psnr": psnr} if psnr else {})
+    runs = [r("3dgs", "train", 22.0), r("3dgs", "truck", 25.0), r("softmax_gs", "train", 23.0),
+            r("softmax_gs", "truck", None, "failed")]
+    dm = dataset_means("tandt", runs, {"psnr": PSNR})
+    assert dm.common["paper"] == ["train"]
+    assert dm.values[("3dgs", "full", "paper")]["psnr"].mean == 22.0  # truck left out for both rows
+    assert "mean over 1 of 2 scenes" in dm.subset_note[("3dgs", "full", "paper")]
+    full = dataset_means("tandt", runs[:2] + [r("softmax_gs", "truck", 26.0), runs[2]], {"psnr": PSNR})
+    assert full.values[("softmax_gs", "full", "paper")]["psnr"].mean == 24.5 and not full.subset_note
+
+
+def test_pareto_front():
+    pts = [(10.0, 20.0), (20.0, 19.0), (5.0, 25.0), (30.0, 18.0), (15.0, 18.5)]
+    assert sorted(pareto_front(pts, x_higher_better=True)) == [0, 1, 2, 3]  # (15, 18.5) is beaten by (20, 19)
+    assert sorted(pareto_front(pts, x_higher_better=False)) == [2]           # fewest and best
