@@ -190,3 +190,6 @@ def test_properties_and_lookup(lpips_weights_dir, monkeypatch):
     res = evaluate_images([b], [a], lpips=model, flip=False)
     assert res.lpips == [pytest.approx(REFERENCE[("vgg", "lpips")]["blur"], abs=2e-6)]
     assert "lpips_vgg_v0.1" in res.means()
+    res = evaluate_images([b], [a], lpips_input="3dgs", flip=False)  # loaded via the environment
+    assert res.lpips_name == "lpips_vgg_v0.1_3dgs-input"
+    assert res.lpips == [pytest.approx(REFERENCE[("vgg", "3dgs")]["blur"], abs=2e-6)]

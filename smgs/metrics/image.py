@@ -103,20 +103,24 @@ def _check_pair(pred: torch.Tensor, gt: torch.Tensor, i: int) -> None:
 def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
                     names: Sequence[str] | None = None, *,
                     lpips: "lpips_mod.LPIPS | Missing | None" = None, lpips_net: str = "vgg",
-                    lpips_weights: str | None = None, flip: bool = True,
+                    lpips_weights: str | None = None,
+                    lpips_input: "lpips_mod.InputConvention" = "lpips", flip: bool = True,
                     quantize: bool = True) -> ImageMetrics:
     """PSNR, SSIM, LPIPS and FLIP per image.
 
     ``lpips``: a loaded network, a ``Missing`` to skip with that reason, or None to load ``lpips_net``
-    from ``lpips_weights`` / ``$SMGS_LPIPS_WEIGHTS`` (Missing if there are none).
+    from ``lpips_weights`` / ``$SMGS_LPIPS_WEIGHTS`` (Missing if there are none) with input
+    convention ``lpips_input`` ("lpips": [0, 1] mapped to [-1, 1] as the lpips package; "3dgs":
+    [0, 1] fed unchanged as the 3DGS evaluation does; see ``smgs.metrics.lpips``).
     ``quantize``: round both images to 8 bits first, as 3DGS's PNG round trip does.
     """
     if len(preds) != len(gts):
         raise ValueError(f"{len(preds)} predictions but {len(gts)} ground-truth images")
     names = [f"{i:05d}" for i in range(len(preds))] if names is None else list(names)
     if lpips is None:
-        lpips = lpips_mod.load_lpips(lpips_net, lpips_weights)
-    lpips_name = lpips.name if isinstance(lpips, lpips_mod.LPIPS) else lpips_mod.metric_name(lpips_net)
+        lpips = lpips_mod.load_lpips(lpips_net, lpips_weights, input_convention=lpips_input)
+    lpips_name = (lpips.name if isinstance(lpips, lpips_mod.LPIPS)
+                  else lpips_mod.metric_name(lpips_net, lpips_input))
     flip_ok = flip_available() if flip else Missing("FLIP not requested")
     psnrs: list[float] = []
     ssims: list[float] = []
