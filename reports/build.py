@@ -22,7 +22,7 @@ from protocols.results import RunResult, atomic_write_bytes, atomic_write_text
 from reports.diagnostics import diagnostics_section
 from reports.environment import environment_markdown
 from reports.paper import load_paper
-from reports.plots import Plot, pareto_plot, time_curves
+from reports.plots import Plot, pareto_plots, time_curves
 from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
 from reports.stability import compute_stability, stability_section
 from reports.table import Section
@@ -58,14 +58,14 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     sections = [f(runs, ctx) for f in (table1, table2, table3, table4, table5)]
     plots = time_curves(runs)
     fps_pts, gs_pts = tradeoff_points(runs)
-    for p in (pareto_plot(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
+    plots += pareto_plots(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
                           "PSNR against render FPS, one point per method × budget (dataset means as in Table 2; "
-                          "one panel per dataset or pattern); the dashed line and rings mark the Pareto front."),
-              pareto_plot(gs_pts, "psnr_vs_gaussians.png", "#Gaussians", False, True,
+                          "one panel per dataset or pattern); the dashed line and rings mark the Pareto front "
+                          "(higher PSNR at higher FPS), per preset.")
+    plots += pareto_plots(gs_pts, "psnr_vs_gaussians.png", "#Gaussians", False, True,
                           "PSNR against the number of Gaussians, one point per method × budget (or cap); the "
-                          "dashed line and rings mark the Pareto front (higher PSNR with fewer Gaussians).")):
-        if p is not None:
-            plots.append(p)
+                          "dashed line and rings mark the Pareto front (higher PSNR with fewer Gaussians), per "
+                          "preset.")
     diag, diag_plots = diagnostics_section(runs, ctx)
 
     computed_here = stability is None

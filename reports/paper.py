@@ -90,7 +90,7 @@ def dataset_rank(dataset: str) -> tuple[int, str]:
 
 
 def scene_rank(dataset: str, scene: str) -> tuple[int, str]:
-    scenes = DATASET_SCENES.get(dataset, [])
+    scenes = DATASET_SCENES.get(dataset, PATTERNS if dataset == "patterns" else [])
     return (scenes.index(scene) if scene in scenes else len(scenes), scene)
 
 

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from protocols.results import RunResult
-from reports.paper import dataset_label, dataset_rank, method_label, method_rank, scene_rank
+from reports.paper import budget_rank, dataset_label, dataset_rank, method_label, method_rank, scene_rank
 from reports.runs import Value, is_pattern, pattern_cap
 
 PANELS_PER_FIGURE = 9
@@ -60,7 +61,7 @@ def color(method: str) -> str:
 def _png(fig: Figure) -> bytes:
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=100)  # the constrained layout already fits the labels
     return buf.getvalue()
 
 
@@ -82,33 +83,48 @@ def time_curves(runs: list[RunResult]) -> list[Plot]:
         chunk = names[start:start + PANELS_PER_FIGURE]
         rows, cols = _grid(len(chunk))
         fig = Figure(figsize=(4.2 * cols, 3.2 * rows), layout="constrained")
-        budgets: dict[str, str] = {}
         for i, name in enumerate(chunk):
-            ax = fig.add_subplot(rows, cols, i + 1)
-            seen = set()
-            xs_all = []
-            for r in sorted(panels[name], key=lambda r: (method_rank(r.method), _budget(r), r.seed)):
-                ls = budgets.setdefault(_budget(r), LINESTYLES[len(budgets) % len(LINESTYLES)])
-                xs = [c.seconds for c in r.curve]
-                ys = [c.psnr for c in r.curve]
-                xs_all += [x for x in xs if x > 0]
-                label = f"{method_label(r.method)} {_budget(r)}" + ("" if r.preset == "paper" else f" [{r.preset}]")
-                ax.plot(xs, ys, ls, color=color(r.method), marker=MARKERS.get(r.preset, "^"), markersize=3,
-                        linewidth=1, alpha=0.8, label=None if label in seen else label)
-                seen.add(label)
-            if xs_all and max(xs_all) / min(xs_all) > 50:
-                ax.set_xscale("log")
-            ax.set_title(name, fontsize=9)
-            ax.set_xlabel("train seconds")
-            ax.set_ylabel("PSNR (dB)")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=6, loc="lower right")
+            _curves_panel(fig.add_subplot(rows, cols, i + 1), name, panels[name])
         part = "" if start == 0 else f"_{start // PANELS_PER_FIGURE + 1}"
         plots.append(Plot(f"psnr_vs_time{part}.png",
                           "Test-view PSNR against train seconds (evaluation excluded), one curve per run "
-                          "from its intermediate evaluations; colour = method, line style = budget.",
-                          _png(fig)))
+                          "from its intermediate evaluations; colour = method, line style (or the label at "
+                          "the end of a curve) = budget, marker = preset.", _png(fig)))
     return plots
+
+
+def _curves_panel(ax, name: str, runs: list[RunResult]) -> None:
+    runs = sorted(runs, key=lambda r: (method_rank(r.method), budget_rank(_budget(r)), r.seed))
+    budgets = list(dict.fromkeys(_budget(r) for r in sorted(runs, key=lambda r: budget_rank(_budget(r)))))
+    styled = len(budgets) <= len(LINESTYLES)  # otherwise the budget is written at the end of each curve
+    labelled = set()
+    xs_all = []
+    for r in runs:
+        xs = [c.seconds for c in r.curve]
+        ys = [c.psnr for c in r.curve]
+        xs_all += [x for x in xs if x > 0]
+        ls = LINESTYLES[budgets.index(_budget(r))] if styled else "-"
+        ax.plot(xs, ys, ls, color=color(r.method), marker=MARKERS.get(r.preset, "^"), markersize=3, linewidth=1,
+                alpha=0.8)
+        key = (r.method, _budget(r), r.preset)
+        if not styled and key not in labelled:
+            ax.annotate(_budget(r), (xs[-1], ys[-1]), fontsize=5, xytext=(2, 0), textcoords="offset points")
+        labelled.add(key)
+    handles = [Line2D([], [], color=color(m), label=method_label(m))
+               for m in dict.fromkeys(r.method for r in runs)]
+    if styled and len(budgets) > 1:
+        handles += [Line2D([], [], color="k", linestyle=LINESTYLES[i], label=b) for i, b in enumerate(budgets)]
+    presets = list(dict.fromkeys(r.preset for r in runs))
+    if presets != ["paper"]:
+        handles += [Line2D([], [], color="k", linestyle="", marker=MARKERS.get(p, "^"), label=f"[{p}]")
+                    for p in presets]
+    if xs_all and max(xs_all) / min(xs_all) > 50:
+        ax.set_xscale("log")
+    ax.set_title(name, fontsize=9)
+    ax.set_xlabel("train seconds")
+    ax.set_ylabel("PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(handles=handles, fontsize=6, loc="lower right")
 
 
 def _budget(r: RunResult) -> str:
@@ -128,44 +144,54 @@ def pareto_front(points: list[tuple[float, float]], x_higher_better: bool) -> li
     return [i for i, p in enumerate(points) if not any(beats(q, p) for j, q in enumerate(points) if j != i)]
 
 
-def pareto_plot(points: list[Point], name: str, xlabel: str, x_higher_better: bool, log_x: bool,
-                caption: str) -> Plot | None:
+def pareto_plots(points: list[Point], name: str, xlabel: str, x_higher_better: bool, log_x: bool,
+                 caption: str) -> list[Plot]:
+    """One figure per PANELS_PER_FIGURE panels (``name``, then ``name_2.png``, ...). Points without a
+    value (a failed run, an unrecorded FPS) are not drawn; the tables say why."""
     panels: dict[str, list[Point]] = {}
     for p in points:
         if p.psnr.ok and p.x.ok and (not log_x or p.x.mean > 0):
             panels.setdefault(p.panel, []).append(p)
-    if not panels:
-        return None
-    names = list(panels)[:PANELS_PER_FIGURE * 2]
-    rows, cols = _grid(len(names))
-    fig = Figure(figsize=(4.2 * cols, 3.4 * rows), layout="constrained")
-    for i, panel in enumerate(names):
-        ax = fig.add_subplot(rows, cols, i + 1)
-        pts = sorted(panels[panel], key=lambda p: (method_rank(p.method), p.budget))
-        seen = set()
-        for p in pts:
-            lab = method_label(p.method) + ("" if p.preset == "paper" else f" [{p.preset}]")
-            ax.scatter([p.x.mean], [p.psnr.mean], color=color(p.method), marker=MARKERS.get(p.preset, "^"),
-                       s=28, zorder=3, label=None if lab in seen else lab)
-            seen.add(lab)
-            ax.annotate(p.label, (p.x.mean, p.psnr.mean), fontsize=6, xytext=(3, 3), textcoords="offset points")
-        for preset in sorted({p.preset for p in pts}):
-            sub = [p for p in pts if p.preset == preset]
-            front = [sub[j] for j in pareto_front([(p.x.mean, p.psnr.mean) for p in sub], x_higher_better)]
-            front.sort(key=lambda p: p.x.mean)
-            ax.plot([p.x.mean for p in front], [p.psnr.mean for p in front], "k--", linewidth=0.8, zorder=2,
-                    label="Pareto front" if "Pareto front" not in seen else None)
-            ax.scatter([p.x.mean for p in front], [p.psnr.mean for p in front], s=90, facecolors="none",
-                       edgecolors="k", linewidths=0.9, zorder=4)
-            seen.add("Pareto front")
-        if log_x:
-            ax.set_xscale("log")
-        ax.set_title(panel, fontsize=9)
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel("PSNR (dB)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=6, loc="best")
-    return Plot(name, caption, _png(fig))
+    names = list(panels)
+    plots = []
+    for start in range(0, len(names), PANELS_PER_FIGURE):
+        chunk = names[start:start + PANELS_PER_FIGURE]
+        rows, cols = _grid(len(chunk))
+        fig = Figure(figsize=(4.2 * cols, 3.4 * rows), layout="constrained")
+        for i, panel in enumerate(chunk):
+            _pareto_panel(fig.add_subplot(rows, cols, i + 1), panel, panels[panel], xlabel, x_higher_better, log_x)
+        part = "" if start == 0 else f"_{start // PANELS_PER_FIGURE + 1}"
+        plots.append(Plot(name.replace(".png", f"{part}.png"), caption, _png(fig)))
+    return plots
+
+
+def _pareto_panel(ax, panel: str, pts: list[Point], xlabel: str, x_higher_better: bool, log_x: bool) -> None:
+    pts = sorted(pts, key=lambda p: (method_rank(p.method), p.budget))
+    for m, preset in dict.fromkeys((p.method, p.preset) for p in pts):  # one scatter per method × preset
+        sub = [p for p in pts if (p.method, p.preset) == (m, preset)]
+        ax.scatter([p.x.mean for p in sub], [p.psnr.mean for p in sub], color=color(m), s=28, zorder=3,
+                   marker=MARKERS.get(preset, "^"),
+                   label=method_label(m) + ("" if preset == "paper" else f" [{preset}]"))
+    front_all: list[Point] = []
+    for i_p, preset in enumerate(sorted({p.preset for p in pts})):
+        sub = [p for p in pts if p.preset == preset]
+        front = [sub[j] for j in pareto_front([(p.x.mean, p.psnr.mean) for p in sub], x_higher_better)]
+        front.sort(key=lambda p: p.x.mean)
+        front_all += front
+        ax.plot([p.x.mean for p in front], [p.psnr.mean for p in front], "k--", linewidth=0.8, zorder=2,
+                label="Pareto front" if i_p == 0 else None)
+        ax.scatter([p.x.mean for p in front], [p.psnr.mean for p in front], s=90, facecolors="none",
+                   edgecolors="k", linewidths=0.9, zorder=4)
+    # budget labels: every point when few, else the front's (text layout dominates the drawing time)
+    for p in (pts if len(pts) <= 12 else front_all):
+        ax.annotate(p.label, (p.x.mean, p.psnr.mean), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    if log_x:
+        ax.set_xscale("log")
+    ax.set_title(panel, fontsize=9)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6, loc="best")
 
 
 def panel_name(dataset: str, scene: str | None = None) -> str:

@@ -84,6 +84,12 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
     backends = sorted({r.versions.get("backend") for r in runs if r.versions.get("backend")})
     if len(backends) > 1:
         notes.append(f"{what} mixes renderer backends ({', '.join(backends)}).")
+    q = {bool(r.diagnostics.get("metrics_on_8bit")) for r in runs
+         if r.status == "ok" and "metrics_on_8bit" in (r.diagnostics or {})}
+    if q == {False}:
+        notes.append("Metrics on float renders, not 8-bit quantised ones (eval.quantize=false).")
+    elif len(q) > 1:
+        notes.append(f"{what} mixes metrics on 8-bit quantised renders and on float renders (eval.quantize).")
     return notes
 
 
@@ -377,6 +383,10 @@ def table4(runs: list[RunResult], ctx: Context) -> Section:
     notes = ["The paper's flow is RAFT; ours is named per row (geometric: exact, from rendered depth and the "
              "known camera motion; opencv: DIS optical flow). Numbers from different flow estimators are not "
              "comparable, so a Δ to the paper is indicative."]
+    masks = sorted({str(r.consistency.get("mask")) for r in real if r.consistency and r.consistency.get("mask")})
+    if any(m in ("own", "per-method") for m in masks):
+        notes.append("Scored on each method's own valid mask (StopThePop scores the compared methods on the "
+                     "intersection of their masks), so a difference between rows includes their masks.")
     notes += mix_notes(real)
     sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Flow"], notes))
     return sec

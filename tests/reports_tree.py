@@ -65,6 +65,7 @@ def make_tree(root: Path) -> Path:
                 r = _ok(m, "patterns", "circle4", budget, seed, psnr + 0.2 * seed, gs=cap, seconds=30.0 * cap,
                         fps=200.0 / cap)
                 r.config = {"cap": cap} if budget == "cap" else {"budget": {"name": budget, "cap": cap}}
+                r.diagnostics["metrics_on_8bit"] = False  # the runner's float-render metrics for fits
                 # the budget name "cap" does not tell the caps apart: the directory does
                 write_result(root / "patterns" / "circle4" / m / f"cap{cap}" / f"seed{seed}", r)
     put(_ok("gef_only", "patterns", "circle4", "cap4", 0, 24.0, gs=4, seconds=120.0, fps=50.0,
@@ -92,7 +93,7 @@ def make_tree(root: Path) -> Path:
             if scene == "bicycle" and b == "full":
                 r.consistency = {"scene": scene, "method": m, "psnr": p, "mse": 0.016 if m == "softmax_gs" else 0.017,
                                  "flip": 0.031 if m == "softmax_gs" else 0.032, "flip_name": "flip",
-                                 "estimator": "geometric", "step": 7}
+                                 "estimator": "geometric", "step": 7, "mask": "per-method"}
                 r.config["eval"] = {"consistency": True}
             put(r)
     put(RunResult(method="softmax_gs", dataset="tandt", scene="train", budget="full", seed=0, status="skipped",

@@ -92,6 +92,7 @@ def test_table1_pattern_grid(report):
     line16 = row(md, "| 16 |")
     assert "**32.10 ± 0.14**" in line16 and "32.51" in line16
     assert "—" in line16 and "no result" in footnote(md, line16, 4)  # gef_only cap 16 never ran
+    assert "Metrics on float renders, not 8-bit" in md  # the runner's flag for the fits
     failed = row(md, "| 4 |", "20.37")
     assert "failed: FloatingPointError: loss is nan" in footnote(md, failed, 1)
 
@@ -130,7 +131,7 @@ def test_tables_3_4_5(report):
     t4 = section(md, "Table 4")
     line = row(t4, "| bicycle | Softmax-GS |")
     assert "**0.0160**" in line and "0.031" in line and "geometric" in line
-    assert "RAFT" in t4
+    assert "RAFT" in t4 and "own valid mask" in t4
     t5 = section(md, "Table 5")
     line = row(t5, "| garden | Softmax-GS |")
     assert "27.41" in line and "out of memory" in footnote(t5, line, 2)
@@ -196,6 +197,16 @@ def test_rebuild_replaces_and_drops_stale_files(tmp_path):
     assert not (out / "tables" / "table1_patterns.csv").exists()  # no pattern runs any more
     assert "Not produced: no 2D pattern fits" in md
     assert "not computed: not wanted here" in md
+
+
+def test_pareto_figures_split_not_truncated():
+    from reports.plots import Point, pareto_plots
+    from reports.runs import Value
+
+    pts = [Point(f"scene {i}", "3dgs", "full", "paper", Value(20.0 + i, n=1), Value(10.0 * (i + 1), n=1))
+           for i in range(10)]
+    plots = pareto_plots(pts, "p.png", "FPS", True, True, "c")
+    assert [p.name for p in plots] == ["p.png", "p_2.png"]
 
 
 def test_cli_and_empty_tree(tmp_path, capsys):
