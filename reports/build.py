@@ -14,6 +14,7 @@ import io
 import json
 import math
 import sys
+import traceback
 from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
@@ -55,18 +56,10 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     paper = load_paper()
     ctx = Context.of(runs, paper)
 
-    sections = [f(runs, ctx) for f in (table1, table2, table3, table4, table5)]
-    plots = time_curves(runs)
-    fps_pts, gs_pts = tradeoff_points(runs)
-    plots += pareto_plots(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
-                          "PSNR against render FPS, one point per method × budget (dataset means as in Table 2; "
-                          "one panel per dataset or pattern); the dashed line and rings mark the Pareto front "
-                          "(higher PSNR at higher FPS), per preset.")
-    plots += pareto_plots(gs_pts, "psnr_vs_gaussians.png", "#Gaussians", False, True,
-                          "PSNR against the number of Gaussians, one point per method × budget (or cap); the "
-                          "dashed line and rings mark the Pareto front (higher PSNR with fewer Gaussians), per "
-                          "preset.")
-    diag, diag_plots = diagnostics_section(runs, ctx)
+    sections = [_guard(f"Table {i}", lambda f=f: f(runs, ctx))
+                for i, f in enumerate((table1, table2, table3, table4, table5), start=1)]
+    plots, plot_error = _guard_plots(lambda: _tradeoff_plots(runs))
+    diag, diag_plots = _guard("Softmax-GS diagnostics", lambda: diagnostics_section(runs, ctx), with_plots=True)
 
     computed_here = stability is None
     reason = None
@@ -85,16 +78,50 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     for p in [*plots, *diag_plots]:
         files[f"plots/{p.name}"] = p.png
 
-    md = _markdown(runs_dir, loaded, paper.error, ctx, sections, plots, diag, diag_plots, stab, runs, files)
+    md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files)
     _write(out, files, md)
     return out / REPORT
 
 
+def _tradeoff_plots(runs: list[RunResult]) -> list[Plot]:
+    plots = time_curves(runs)
+    fps_pts, gs_pts = tradeoff_points(runs)
+    plots += pareto_plots(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
+                          "PSNR against render FPS, one point per method × budget (dataset means as in Table 2; "
+                          "one panel per dataset or pattern); the dashed line and rings mark the Pareto front "
+                          "(higher PSNR at higher FPS), per preset.")
+    plots += pareto_plots(gs_pts, "psnr_vs_gaussians.png", "#Gaussians", False, True,
+                          "PSNR against the number of Gaussians, one point per method × budget (or cap); the "
+                          "dashed line and rings mark the Pareto front (higher PSNR with fewer Gaussians), per "
+                          "preset.")
+    return plots
+
+
+def _guard(name: str, build, with_plots: bool = False):
+    """A section that raises becomes "could not be built: <error>" (traceback on stderr), so one bad
+    value does not cost the user the rest of the report at the end of a sweep."""
+    try:
+        return build()
+    except Exception as e:  # noqa: BLE001
+        traceback.print_exc()
+        sec = Section(name.lower().replace(" ", "_"), name, empty_reason=f"could not be built: {type(e).__name__}: {one_line(str(e), 300)} "
+                                               "(a bug in reports/; the traceback went to stderr)")
+        return (sec, []) if with_plots else sec
+
+
+def _guard_plots(build) -> tuple[list[Plot], str | None]:
+    try:
+        return build(), None
+    except Exception as e:  # noqa: BLE001
+        traceback.print_exc()
+        return [], f"{type(e).__name__}: {one_line(str(e), 300)}"
+
+
 # ---- markdown -----------------------------------------------------------------------------------
 
-def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, ctx: Context, sections: list[Section],
-              plots: list[Plot], diag: Section, diag_plots: list[Plot], stab: Section, runs: list[RunResult],
-              files: dict[str, bytes]) -> str:
+def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, sections: list[Section],
+              plots: list[Plot], plot_error: str | None, diag: Section, diag_plots: list[Plot], stab: Section,
+              runs: list[RunResult], files: dict[str, bytes]) -> str:
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = ["# smgs report", "",
@@ -116,6 +143,8 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, ctx: 
     if plots:
         for p in plots:
             out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
+    elif plot_error:
+        out.append(f"Not produced: the plots could not be drawn: {plot_error} (traceback on stderr).\n")
     else:
         out.append("Not produced: no finished run records a training curve, FPS or Gaussian count.\n")
     out.append(diag.markdown(csv_link=_link(files, diag.name)))

@@ -118,8 +118,9 @@ def _summary(params: list[dict], name: str) -> dict[str, float] | None:
     for q in QUANTILES:
         vals = []
         for p in params:
+            summary = p.get(name)
             try:
-                x = float((p.get(name) or {}).get(q))
+                x = float(summary.get(q)) if isinstance(summary, dict) else math.nan
             except (TypeError, ValueError):
                 continue
             if math.isfinite(x):

@@ -228,3 +228,20 @@ def test_unreadable_and_duplicate_results_are_listed(tmp_path):
     md = build_report(root, stability="x").read_text()
     assert "Unreadable results file" in md and "Duplicate result" in md
     assert "20.00" in section(md, "Table 5")
+
+
+def test_a_broken_section_does_not_cost_the_report(tmp_path, monkeypatch, capsys):
+    import reports.build as rb
+
+    def boom(runs, ctx):
+        raise KeyError("surprise")
+
+    monkeypatch.setattr(rb, "table3", boom)
+    root = tmp_path / "runs"
+    write_result(root / "a", RunResult(method="softmax_gs", dataset="colmap", scene="fern", budget="full", seed=0,
+                                       metrics={"psnr": 21.0}, diagnostics={"params": {"alpha": "oops"},
+                                                                            "frac_within_kmax": "n/a"}))
+    md = build_report(root, stability="x").read_text()
+    assert "could not be built: KeyError: 'surprise'" in section(md, "Table 3")
+    assert "21.00" in section(md, "Table 5")
+    assert "KeyError" in capsys.readouterr().err
