@@ -163,7 +163,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         for n, img in zip(names, renders):
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
     m = evaluate_images(renders, gts, names, lpips_net=ev.get("lpips_net", "vgg"),
-                        lpips_weights=ev.get("lpips_weights"), flip=bool(ev.get("flip", True)),
+                        lpips_weights=ev.get("lpips_weights"), lpips_input=ev.get("lpips_input", "3dgs"), flip=bool(ev.get("flip", True)),
                         quantize=bool(ev.get("quantize", True)))
     means = m.means()
     result.metrics = {"psnr": means["psnr"], "ssim": means["ssim"]}
@@ -212,13 +212,18 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
     from smgs.metrics.consistency.trajectory import interpolate_trajectory
 
     if scene.trajectory:
-        traj = scene.trajectory
+        traj = list(scene.trajectory)
         atomic_write_text(run_dir / "trajectory.json", json.dumps(
             {"source": "scene", "cameras": [{"K": c.K.tolist(), "viewmat": c.viewmat.tolist(),
                                              "width": c.width, "height": c.height} for c in traj]}))
     else:
         traj = interpolate_trajectory([v.camera for v in scene.test], 128)
         traj.save(run_dir / "trajectory.json")
+        traj = traj.cameras()
+    # FLIP and flow cost grows with the image: render the video at most max_width wide
+    max_w = int(ev.get("consistency_max_width") or 0)
+    if max_w and traj[0].width > max_w:
+        traj = [c.scaled(max_w / c.width) for c in traj]
 
     def render(cam):
         out = method.render(cam)
@@ -228,6 +233,7 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
                           test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.get("flow", "geometric"))
     out = row.to_json()
     out["mask"] = "per-method"
+    out["width"], out["height"] = traj[0].width, traj[0].height
     return out
 
 

@@ -114,3 +114,18 @@ def test_config_typo_is_a_clear_error_on_the_command_line():
                        cwd=REPO, capture_output=True, text=True, timeout=120)
     assert p.returncode != 0
     assert "stpes" in p.stderr and "not in struct" in p.stderr
+
+
+def test_consistency_row_and_trajectory_recorded(tmp_path):
+    s = run_experiment(["+experiment=smoke", f"out_dir={tmp_path}", "report=false", "grid.methods=[softmax_gs]",
+                        "protocol.steps=5", "dataset.width=96", "dataset.height=72", "dataset.n_views=10",
+                        "eval.consistency=true", "eval.fps_repeats=1", "eval.flip=false"])
+    assert s[0]["status"] == "ok"
+    run = tmp_path / "procedural/blocks/softmax_gs/full/seed0"
+    r = read_result(run / "results.json")
+    c = r.consistency
+    assert c["step"] == 7 and c["estimator"] == "geometric" and c["mask"] == "per-method"
+    assert c["mse"] >= 0 and "psnr" in c  # 96x72: the 20 px border still leaves valid pixels
+    assert json.loads((run / "trajectory.json").read_text())
+    assert r.diagnostics["metrics_on_8bit"] is True
+    assert r.lpips_net.endswith("3dgs-input")
