@@ -70,7 +70,7 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     stab = stability_section(stability, reason, computed_here)
 
     files: dict[str, bytes] = {}
-    for sec in [*sections, diag, stab]:
+    for sec in [s for top in [*sections, diag, stab] for s in top.all()]:
         recs = sec.csv_records()
         if recs:
             files[f"tables/{sec.name}.csv"] = _csv(recs)
@@ -138,7 +138,7 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
     out += ["", READING_GUIDE, ""]
     out.append(_problems(loaded, runs))
     for sec in sections:
-        out.append(sec.markdown(csv_link=_link(files, sec.name)))
+        out.append(sec.markdown(link=lambda name: _link(files, name)))
     out.append("## Error against run time\n")
     if plots:
         for p in plots:
@@ -147,10 +147,10 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
         out.append(f"Not produced: the plots could not be drawn: {plot_error} (traceback on stderr).\n")
     else:
         out.append("Not produced: no finished run records a training curve, FPS or Gaussian count.\n")
-    out.append(diag.markdown(csv_link=_link(files, diag.name)))
+    out.append(diag.markdown(link=lambda name: _link(files, name)))
     for p in diag_plots:
         out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
-    out.append(stab.markdown(csv_link=_link(files, stab.name)))
+    out.append(stab.markdown(link=lambda name: _link(files, name)))
     out += ["## Environment", "", environment_markdown(runs)]
     return "\n".join(out).rstrip() + "\n"
 

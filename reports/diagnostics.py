@@ -91,7 +91,7 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
     notes.insert(0, "The paper's reference (supp. Sec. 12, k_max = 128): ≈85% of pixels on Mip-NeRF360 indoor "
                     "scenes, ≈70% outdoor; Δ in percentage points. Pixels beyond k_max are composited the "
                     "vanilla way, so low coverage means the softmax acts on fewer pixels.")
-    return Table("Fraction of pixels whose splats all fell within k_max", ["Dataset", "Scene", "Method"], [col], rows,
+    return Table("", ["Dataset", "Scene", "Method"], [col], rows,
                  ["k_max", "vs paper range"], rank="none"), notes
 
 
@@ -150,7 +150,7 @@ def params_table(runs: list[RunResult], ctx: Context) -> Table | None:
             rows.append(Row([PARAM_LABELS.get(name, name), dataset_label(ds), label], vals,
                             info={"runs": str(len(groups[key]))},
                             csv={"param": name, "dataset": ds, "method": m, "budget": b, "preset": p}))
-    return Table("Learned parameters at the end of training (quantiles over the Gaussians; median over runs)",
+    return Table("At the end of training: quantiles over the Gaussians, median over runs",
                  ["Parameter", "Dataset", "Method"], cols, rows, ["runs"], rank="none")
 
 
@@ -191,26 +191,30 @@ def params_plot(runs: list[RunResult]) -> Plot | None:
 
 
 def diagnostics_section(runs: list[RunResult], ctx: Context) -> tuple[Section, list[Plot]]:
+    """"Softmax-GS diagnostics" with two sub-sections (k_max coverage, learned parameters), each with
+    its CSV, and the parameters' box plot."""
     sec = Section("diagnostics", "Softmax-GS diagnostics")
     cov, cov_notes = coverage_table(runs, ctx)
     par = params_table(runs, ctx)
-    if cov is not None:
-        cov.notes = cov_notes
-        sec.blocks.append(cov)
-    else:
-        sec.notes += cov_notes
-    if par is not None:
-        sec.blocks.append(par)
     softmax = [r for r in runs if r.status == "ok" and r.method in ("softmax_gs", "softmax_only")]
     lacking = [r for r in softmax if _coverage(r) is None]
     if lacking:
-        sec.notes.append(f"{len(lacking)} ok softmax run(s) record no frac_within_kmax, e.g. "
+        cov_notes.append(f"{len(lacking)} ok softmax run(s) record no frac_within_kmax, e.g. "
                          f"{lacking[0].dataset}/{lacking[0].scene}/{lacking[0].method}/{lacking[0].budget}.")
-    if not sec.blocks:
+    if cov is None and par is None:
         sec.empty_reason = ("no run records diagnostics (frac_within_kmax, params); they come from methods with "
-                            "GEF or softmax competition.") + (" " + " ".join(sec.notes) if sec.notes else "")
-        sec.notes = []
+                            "GEF or softmax competition.") + (" " + " ".join(cov_notes) if cov_notes else "")
         return sec, []
+    kmax = Section("diagnostics_kmax", "Pixels within k_max", notes=cov_notes)
+    if cov is not None:
+        kmax.blocks.append(cov)
+    elif not cov_notes:
+        kmax.empty_reason = "no run records frac_within_kmax."
+    params = Section("diagnostics_params", "Learned α, β, γ")
+    if par is not None:
+        params.blocks.append(par)
+    else:
+        params.empty_reason = "no run records diagnostics[\"params\"]."
+    sec.subsections = [kmax, params]
     plot = params_plot(runs)
     return sec, [plot] if plot else []
-

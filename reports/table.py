@@ -35,6 +35,13 @@ def sci(x: float) -> str:
     return f"{x:.1e}"
 
 
+def ratio_text(r: float) -> str:
+    """×1.25, ×0.93, ×0.0012, ×150."""
+    if abs(r) >= 100:
+        return f"×{r:.0f}"
+    return f"×{r:.2f}" if abs(r) >= 0.1 else f"×{r:.2g}"
+
+
 def percent(x: float) -> str:
     return f"{100 * x:.1f}%"
 
@@ -57,7 +64,7 @@ class Column:
 
     def delta_text(self, ours: float, paper: float) -> str:
         if self.compare == "ratio":
-            return f"×{ours / paper:.3g}" if paper else ""
+            return ratio_text(ours / paper) if paper else ""
         d = ours - paper
         return self.delta_fmt(d) if self.delta_fmt else f"{d:+.{self.decimals}f}"
 
@@ -232,7 +239,7 @@ class Footnotes:
 
 @dataclass
 class Section:
-    """A report section that is one paper table: markdown blocks and one CSV."""
+    """A report section that is one paper table: markdown blocks and one CSV (sub-sections have their own)."""
 
     name: str                   # CSV file stem, e.g. "table2_realworld"
     title: str
@@ -241,13 +248,18 @@ class Section:
     notes: list[str] = field(default_factory=list)
     records: list[dict[str, object]] | None = None   # CSV rows; default: the blocks' records
     empty_reason: str | None = None                  # why nothing could be tabulated
+    subsections: list["Section"] = field(default_factory=list)
 
     def csv_records(self) -> list[dict[str, object]]:
         if self.records is not None:
             return self.records
         return [rec for b in self.blocks for rec in b.records()]
 
-    def markdown(self, level: int = 2, csv_link: str | None = None) -> str:
+    def all(self) -> list["Section"]:
+        """This section and its sub-sections, depth first (one CSV each)."""
+        return [self] + [s for sub in self.subsections for s in sub.all()]
+
+    def markdown(self, level: int = 2, link: Callable[[str], str | None] = lambda name: None) -> str:
         out = [f"{'#' * level} {self.title}", ""]
         out += [p + "\n" for p in self.intro]
         if self.empty_reason:
@@ -256,6 +268,9 @@ class Section:
         for b in self.blocks:
             out += [b.markdown(), ""]
         out += [f"- {n}" for n in self.notes]
-        if csv_link:
+        csv_link = link(self.name)
+        if csv_link and (self.blocks or self.records):
             out += ["", f"Machine-readable: [{csv_link}]({csv_link})"]
+        for sub in self.subsections:
+            out += ["", sub.markdown(level + 1, link)]
         return "\n".join(out).rstrip() + "\n"

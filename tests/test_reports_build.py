@@ -66,7 +66,7 @@ def test_files_written(report):
     path, md = report
     out = path.parent
     for name in ("table1_patterns", "table2_realworld", "table3_speed", "table4_consistency", "table5_per_scene",
-                 "diagnostics", "stability", "runs"):
+                 "diagnostics_kmax", "diagnostics_params", "stability", "runs"):
         assert (out / "tables" / f"{name}.csv").is_file(), name
     pngs = sorted((out / "plots").glob("*.png"))
     assert {p.name for p in pngs} >= {"psnr_vs_time.png", "psnr_vs_fps.png", "psnr_vs_gaussians.png", "params.png"}
@@ -126,7 +126,7 @@ def test_tables_3_4_5(report):
     md = report[1]
     t3 = section(md, "Table 3")
     line = row(t3, "| bicycle | Softmax-GS |")
-    assert "45.0" in line and "×1" in line and "cpu (Test CPU)" in line
+    assert "45.0" in line and "×1.00" in line and "cpu (Test CPU)" in line
     assert "mixes protocol presets" in t3
     t4 = section(md, "Table 4")
     line = row(t4, "| bicycle | Softmax-GS |")
@@ -136,7 +136,7 @@ def test_tables_3_4_5(report):
     line = row(t5, "| garden | Softmax-GS |")
     assert "27.41" in line and "out of memory" in footnote(t5, line, 2)
     line = row(t5, "| bicycle | 3D GS |")
-    assert "25.13" in line and "4800K" in line and "×0.958" in line
+    assert "25.13" in line and "4800K" in line and "×0.96" in line
     skipped = row(t5, "| train |")
     assert MISSING_DATA.split(":")[0] in footnote(t5, skipped, 2)
 

@@ -8,7 +8,7 @@ from protocols.results import RunResult
 from reports.paper import load_paper, paper_key, row_label
 from reports.plots import pareto_front
 from reports.runs import Value, aggregate, consistency_getter, metric, pattern_cap
-from reports.table import Column, Row, Table, count, fixed
+from reports.table import Column, Row, Table, count, fixed, ratio_text
 from reports.tables import PSNR, dataset_means
 
 
@@ -52,6 +52,7 @@ def test_ratio_columns_and_pipe_escape():
     assert "| a\\|b | 2500K | 2000K | ×1.25 |" in md
     assert t.records()[0]["ratio_n"] == pytest.approx(1.25)
     assert count(4) == "4" and count(104_000) == "104K"
+    assert [ratio_text(x) for x in (1.0, 0.926, 0.0012, 150.4)] == ["×1.00", "×0.93", "×0.0012", "×150"]
 
 
 def test_no_compare_marks_delta():
