@@ -96,7 +96,8 @@ class Table:
     # -- ranking ----------------------------------------------------------------------------
     def ranks(self) -> dict[tuple[int, str], int]:
         """(row index, column key) -> 1 (best) or 2 (second), among competing cells with a value.
-        Ties (equal as printed) share a rank. A set with a single value is not ranked."""
+        Ties (equal as printed) share a rank. A set with a single value, or whose values all tie, is
+        not ranked."""
         sets: list[tuple[list[tuple[int, str]], Column]] = []
         if self.rank == "column":
             for c in self.columns:
@@ -125,6 +126,8 @@ class Table:
                 continue
             best_first = sorted(scored, key=lambda s: s[0], reverse=(col.better == "higher"))
             texts = list(dict.fromkeys(t for _, t, _ in best_first))  # equal as printed = tie
+            if len(texts) < 2:
+                continue  # all equal: nothing stands out
             for _, t, cell in scored:
                 if texts.index(t) < 2:
                     out[cell] = texts.index(t) + 1

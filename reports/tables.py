@@ -348,7 +348,7 @@ def table3(runs: list[RunResult], ctx: Context) -> Section:
                        lambda m, b, s, k: ctx.paper_value(ctx.paper.t3(m, b, s, k), "Table 3"),
                        rank_extra=lambda rs: (_devices(rs),),
                        info=lambda rs: {"Device": _devices(rs),
-                                        "Steps": ", ".join(sorted({str(r.steps) for r in rs if r.steps})) or "—"})
+                                        "Steps": ", ".join(sorted({str(r.steps) for r in rs if r.steps})) or "not recorded"})
     for _, row, _ in rows:  # the paper ranks all budgets together
         row.rank_group = (row.rank_group[0], *row.rank_group[2:])
     notes = ["The paper's times are on its own GPU (not stated) at 30K steps; a ratio across devices "
@@ -399,7 +399,7 @@ def _wants_consistency(r: RunResult) -> bool:
 
 def _flows(rs: list[RunResult]) -> str:
     flows = sorted({flow_estimator(r) for r in rs if r.consistency})
-    return ", ".join(flows) if flows else "—"
+    return ", ".join(flows) if flows else "not computed"
 
 
 def table5(runs: list[RunResult], ctx: Context) -> Section:

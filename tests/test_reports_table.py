@@ -33,6 +33,7 @@ def test_rank_groups_and_single_values_unranked():
     t = _table([25.0, 26.0, 30.0, None], groups=["a", "a", "b", "b"])
     r = t.ranks()
     assert r == {(1, "psnr"): 1, (0, "psnr"): 2}  # group b has one value: nothing to rank
+    assert _table([25.0, 25.001, 24.999]).ranks() == {}  # all equal as printed: nothing stands out
 
 
 def test_markdown_cells_footnotes_and_delta():
