@@ -8,14 +8,13 @@ does propagate; the run then resumes from its last checkpoint next time.
 from __future__ import annotations
 
 import logging
-import platform
-import subprocess
 import traceback
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from smgs.env import versions
 from protocols.results import (RunResult, atomic_write_bytes, atomic_write_text, config_hash,
                                read_result, write_result)
 
@@ -40,35 +39,6 @@ def _logger(run_dir: Path) -> logging.Logger:
         fh.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
         log.addHandler(fh)
     return log
-
-
-def versions(backend: str, device: str) -> dict[str, str]:
-    import numpy
-
-    import smgs
-
-    return {"smgs": smgs.__version__, "torch": torch.__version__, "numpy": numpy.__version__,
-            "python": platform.python_version(), "backend": backend, "device": device,
-            "cpu": _cpu_model(), "git": _git_revision()}
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def _git_revision() -> str:
-    try:
-        root = Path(__file__).resolve().parent.parent
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
-                              text=True, timeout=5).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def _identity(cfg: dict) -> dict[str, Any]:

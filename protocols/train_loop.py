@@ -18,6 +18,7 @@ from tqdm import tqdm
 from baselines.registry import create_method
 from protocols.datasets import load_scene_for
 from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
+from smgs.env import versions
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
 from smgs.metrics.timing import TrainClock, device_name, measure_render_fps, track_peak_memory
@@ -183,7 +184,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     backend = cfg.get("backend", "auto")
     from smgs.raster import resolve_backend
 
-    result.versions = _versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
+    result.versions = versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0)}
@@ -237,7 +238,3 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
     return out
 
 
-def _versions(backend: str, device: str) -> dict[str, str]:
-    from protocols.cell import versions
-
-    return versions(backend, device)

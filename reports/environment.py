@@ -4,41 +4,15 @@ machine that builds the report."""
 from __future__ import annotations
 
 import platform
-import subprocess
 from collections import Counter
 from pathlib import Path
 
 from protocols.results import RunResult
+from smgs.env import cpu_model, git_revision
 
 ROOT = Path(__file__).resolve().parent.parent
 ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),
          ("device", "device"), ("cpu", "CPU model"), ("gpu", "GPU"), ("git", "git revision")]
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def git_revision(root: Path = ROOT) -> str:
-    """Short revision of the checkout that holds ``reports/`` (with "+ uncommitted changes" when dirty),
-    or "unknown" outside a git checkout of this project."""
-    def git(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10)
-    try:
-        top = git("rev-parse", "--show-toplevel")
-        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root.resolve():
-            return "unknown"
-        rev = git("rev-parse", "--short", "HEAD").stdout.strip()
-        dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
-        return (rev + (" + uncommitted changes" if dirty else "")) if rev else "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def _version(module: str) -> str:
