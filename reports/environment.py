@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import platform
 from collections import Counter
-from pathlib import Path
 
 from protocols.results import RunResult
 from smgs.env import cpu_model, git_revision
 
-ROOT = Path(__file__).resolve().parent.parent
 ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),
          ("device", "device"), ("cpu", "CPU model"), ("gpu", "GPU"), ("git", "git revision")]
 

@@ -129,3 +129,14 @@ def test_consistency_row_and_trajectory_recorded(tmp_path):
     assert json.loads((run / "trajectory.json").read_text())
     assert r.diagnostics["metrics_on_8bit"] is True
     assert r.lpips_net.endswith("3dgs-input")
+
+
+def test_smoke_experiment_end_to_end_with_report(tmp_path):
+    """The README's main command, with fewer steps and smaller images (the full one takes minutes)."""
+    s = run_experiment(["+experiment=smoke", f"out_dir={tmp_path}", "protocol.steps=8", "dataset.width=64",
+                        "dataset.height=48", "dataset.n_views=10", "eval.fps_repeats=1"])
+    assert [x["status"] for x in s] == ["ok"] * 4
+    report = (tmp_path / "report" / "report.md").read_text()
+    for name in ("3D GS", "Sharp edge only", "Softmax only", "Softmax-GS", "[cpu]"):
+        assert name in report
+    assert (tmp_path / "report" / "tables" / "table5_per_scene.csv").exists()
