@@ -64,6 +64,18 @@ inline VF max_c(VF x, VF c) { return _mm512_max_ps(c.v, x.v); }
 inline VF vabs(VF x) { return _mm512_abs_ps(x.v); }
 inline VF vsqrt(VF x) { return _mm512_sqrt_ps(x.v); }
 inline VF fmadd(VF a, VF b, VF c) { return _mm512_fmadd_ps(a.v, b.v, c.v); }
+// 1/x and √x for the positive normal denominators of the softmax step: rcp14 / rsqrt14 and one
+// Newton step (~1 ulp; the divide/sqrt unit is otherwise the bottleneck of a softmax step).
+inline VF vrcp(VF x) {
+  const __m512 r = _mm512_rcp14_ps(x.v);
+  return _mm512_fmadd_ps(r, _mm512_fnmadd_ps(x.v, r, _mm512_set1_ps(1.0f)), r);
+}
+inline VF vsqrt_pos(VF x) {
+  const __m512 y = _mm512_rsqrt14_ps(x.v);
+  const __m512 g = _mm512_mul_ps(x.v, y), h = _mm512_mul_ps(_mm512_set1_ps(0.5f), y);
+  const __m512 g1 = _mm512_fmadd_ps(g, _mm512_fnmadd_ps(g, h, _mm512_set1_ps(0.5f)), g);
+  return _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(x.v, _mm512_setzero_ps(), _CMP_GT_OQ), g1);
+}
 // exp: Cephes expf polynomial (~1 ulp) with scalef for 2^n (exact under/overflow to 0 / inf).
 inline VF vexp(VF x) {
   __m512 v = _mm512_min_ps(_mm512_set1_ps(88.8f), x.v);
@@ -72,13 +84,13 @@ inline VF vexp(VF x) {
                                   _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
   __m512 r = _mm512_fnmadd_ps(n, _mm512_set1_ps(0.693359375f), v);
   r = _mm512_fnmadd_ps(n, _mm512_set1_ps(-2.12194440e-4f), r);
-  __m512 p = _mm512_set1_ps(1.9875691500e-4f);
-  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.3981999507e-3f));
-  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(8.3334519073e-3f));
-  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(4.1665795894e-2f));
-  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(1.6666665459e-1f));
-  p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(5.0000001201e-1f));
-  __m512 y = _mm512_fmadd_ps(p, _mm512_mul_ps(r, r), r);
+  // p(r) = c0 + c1 r + ... + c5 r^5 by Estrin's scheme (3 dependent FMAs instead of 5)
+  const __m512 r2 = _mm512_mul_ps(r, r);
+  const __m512 e01 = _mm512_fmadd_ps(_mm512_set1_ps(1.6666665459e-1f), r, _mm512_set1_ps(5.0000001201e-1f));
+  const __m512 e23 = _mm512_fmadd_ps(_mm512_set1_ps(8.3334519073e-3f), r, _mm512_set1_ps(4.1665795894e-2f));
+  const __m512 e45 = _mm512_fmadd_ps(_mm512_set1_ps(1.9875691500e-4f), r, _mm512_set1_ps(1.3981999507e-3f));
+  const __m512 p = _mm512_fmadd_ps(_mm512_fmadd_ps(e45, r2, e23), r2, e01);
+  __m512 y = _mm512_fmadd_ps(p, r2, r);
   y = _mm512_add_ps(y, _mm512_set1_ps(1.0f));
   return _mm512_scalef_ps(y, n);
 }
@@ -164,6 +176,8 @@ SMGS_MAP(vabs, std::fabs(x))
 SMGS_MAP(vsqrt, std::sqrt(x))
 SMGS_MAP(vexp, std::exp(x))
 SMGS_MAP(vlog, std::log(x))
+SMGS_MAP(vrcp, 1.0f / x)
+SMGS_MAP(vsqrt_pos, std::sqrt(x))
 #undef SMGS_MAP
 inline VM mand(VM a, VM b) { return {a.m & b.m}; }
 inline VM mor(VM a, VM b) { return {a.m | b.m}; }
@@ -400,31 +414,51 @@ static Prepared prepare(const torch::Tensor& means2d, const torch::Tensor& conic
   return P;
 }
 
-// Splats of one tile split into its 16 blocks of 4x4 pixels (a splat goes to the blocks its box
-// touches), each list still in depth order. Items are positions in the tile list.
+// ---- blocks ------------------------------------------------------------------------------------------
+// A tile of 16x16 pixels is processed as 8 blocks of 8x4 pixels; a block is kNV = 2 vectors of 4x4
+// pixels, processed in lockstep over the block's splats: two independent dependency chains per
+// splat (the softmax step's chain through the running means is ~200 cycles long, so the loop is
+// latency-bound and the second vector comes almost free).
+constexpr int kNV = 2;
+constexpr int kBW = 4 * kNV;                     // block width in pixels
+constexpr int kBX = kTileSize / kBW;             // blocks per tile row
+constexpr int kNB = kBX * (kTileSize / 4);       // blocks per tile
+
+// One tile's splats: their packed rows copied into a contiguous per-thread buffer (in tile-list,
+// i.e. depth, order; one loop of independent loads instead of a dependent miss per first touch),
+// and split into the tile's blocks (a splat goes to the blocks its 3σ box touches).
+// Block-list items are positions in the tile list.
 struct BlockLists {
+  std::vector<float> rows;  // [n, Sp]
   std::vector<int32_t> items;
-  int n = 0;
-  int count[16];
+  int n = 0, Sp = 0;
+  int count[kNB];
   const int32_t* list(int b) const { return items.data() + size_t(b) * n; }
 };
+
+static inline int padded(int S) { return (S + 15) & ~15; }  // rows on 64-byte boundaries
 
 static void build_block_lists(const Scene& sc, int t, BlockLists& bl) {
   const int off = sc.toff[t];
   const int n = sc.toff[t + 1] - off;
+  const int S = sc.S, Sp = padded(S);
   bl.n = n;
-  if (bl.items.size() < size_t(16) * n) bl.items.resize(size_t(16) * n);
-  std::fill(bl.count, bl.count + 16, 0);
+  bl.Sp = Sp;
+  if (bl.items.size() < size_t(kNB) * n) bl.items.resize(size_t(kNB) * n);
+  if (bl.rows.size() < size_t(Sp) * n) bl.rows.resize(size_t(Sp) * n);
+  std::fill(bl.count, bl.count + kNB, 0);
   const int tx0 = (t % sc.tiles_x) * kTileSize, ty0 = (t / sc.tiles_x) * kTileSize;
   int32_t* it = bl.items.data();
+  float* rows = bl.rows.data();
+  const int32_t* tl = sc.tlist + off;
+  for (int i = 0; i < n; ++i) std::memcpy(rows + size_t(i) * Sp, sc.pk + size_t(tl[i]) * S, sizeof(float) * S);
   for (int i = 0; i < n; ++i) {
-    const int j = sc.tlist[off + i];
-    const int32_t* b = sc.box + 4 * size_t(j);
-    const int bx0 = std::max(b[0] - tx0, 0) >> 2, bx1 = std::min(b[1] - tx0, kTileSize - 1) >> 2;
+    const int32_t* b = sc.box + 4 * size_t(tl[i]);
+    const int bx0 = std::max(b[0] - tx0, 0) / kBW, bx1 = std::min(b[1] - tx0, kTileSize - 1) / kBW;
     const int by0 = std::max(b[2] - ty0, 0) >> 2, by1 = std::min(b[3] - ty0, kTileSize - 1) >> 2;
     for (int by = by0; by <= by1; ++by)
       for (int bx = bx0; bx <= bx1; ++bx) {
-        const int k = by * 4 + bx;
+        const int k = by * kBX + bx;
         it[size_t(k) * n + bl.count[k]++] = i;
       }
   }
@@ -435,7 +469,7 @@ struct Lanes {
   VF px, py;
   VM valid;
   int idx[kLanes];  // pixel index or -1
-  Lanes(int x0, int y0, int W, int H) {
+  void init(int x0, int y0, int W, int H) {
     alignas(64) float fx[kLanes], fy[kLanes];
     unsigned v = 0;
     for (int l = 0; l < kLanes; ++l) {
@@ -480,7 +514,7 @@ struct Scratch {
 };
 template <int NCT>
 struct Chan {
-  VF v[NCT + 1];
+  VF v[kNV * (NCT + 1)];
   VF* p(Scratch&, int, int) { return v; }
 };
 template <>
@@ -488,104 +522,161 @@ struct Chan<0> {
   VF* p(Scratch& s, int slot, int n) { return s.get(slot, n); }
 };
 
+// Sums of the lanes of 16 vectors, as one vector (lane k = Σ lanes of v[k]): a transposing tree of
+// 45 shuffles and adds instead of 16 horizontal reductions.
+#ifdef SMGS_AVX512
+inline VF reduce16(const VF* v) {
+  // the tree leaves lane 4j+e holding input 4e+j: feed it transposed so the result is in order
+  constexpr int tr[16] = {0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15};
+  __m512 w[8];
+  for (int i = 0; i < 8; ++i) {
+    const __m512 a = v[tr[2 * i]].v, b = v[tr[2 * i + 1]].v;
+    w[i] = _mm512_add_ps(_mm512_shuffle_f32x4(a, b, 0x44), _mm512_shuffle_f32x4(a, b, 0xEE));
+  }
+  __m512 x[4];
+  for (int i = 0; i < 4; ++i)
+    x[i] = _mm512_add_ps(_mm512_shuffle_f32x4(w[2 * i], w[2 * i + 1], 0x88),
+                         _mm512_shuffle_f32x4(w[2 * i], w[2 * i + 1], 0xDD));
+  const __m512 s0 = _mm512_add_ps(_mm512_unpacklo_ps(x[0], x[1]), _mm512_unpackhi_ps(x[0], x[1]));
+  const __m512 s1 = _mm512_add_ps(_mm512_unpacklo_ps(x[2], x[3]), _mm512_unpackhi_ps(x[2], x[3]));
+  const __m512d d0 = _mm512_castps_pd(s0), d1 = _mm512_castps_pd(s1);
+  return _mm512_add_ps(_mm512_castpd_ps(_mm512_unpacklo_pd(d0, d1)), _mm512_castpd_ps(_mm512_unpackhi_pd(d0, d1)));
+}
+#else
+inline VF reduce16(const VF* v) {
+  alignas(64) float r[kLanes];
+  for (int k = 0; k < kLanes; ++k) r[k] = hsum(v[k]);
+  return load(r);
+}
+#endif
+
 // ---- forward ---------------------------------------------------------------------------------------
 template <bool GEF, bool SOFT, int NCT>
-static int64_t fwd_block(const Scene& sc, const int32_t* tl, const int32_t* lst, int n, int x0, int y0,
+static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32_t* lst, int n, int x0, int y0,
                          const FwdOut& o, Scratch& scr) {
+  constexpr int NV = kNV;
   const int nch = NCT ? NCT : sc.nch;
+  const int nc = nch + 1;
   const int R = sc.R;
-  const Lanes L(x0, y0, sc.W, sc.H);
+  Lanes L[NV];
+  for (int v = 0; v < NV; ++v) L[v].init(x0 + 4 * v, y0, sc.W, sc.H);
   Chan<NCT> cs;
-  VF* C = cs.p(scr, 0, nch + 1);
-  VF* RG = scr.get(1, 1 + 2 * R);  // reg sums: Σw, Σw·v_r, Σw·v_r²
-  for (int c = 0; c < nch + 1; ++c) C[c] = VF(0.f);
-  if (R)
-    for (int c = 0; c < 1 + 2 * R; ++c) RG[c] = VF(0.f);
-  VF T(1.f), A(0.f), dp(0.f), pp(0.f), cnt(0.f), last(0.f), dfront(0.f);
-  VM done = mnot(L.valid);
+  VF* C = cs.p(scr, 0, NV * nc);           // C[v * nc + c]; depth is channel nch
+  VF* RG = scr.get(1, NV * (1 + 2 * R));   // reg sums per vector: Σw, Σw·v_r, Σw·v_r²
+  for (int c = 0; c < NV * nc; ++c) C[c] = VF(0.f);
+  for (int c = 0; c < NV * (1 + 2 * R); ++c) RG[c] = VF(0.f);
+  VF T[NV], A[NV], dp[NV], pp[NV], cnt[NV], last[NV], dfront[NV];
+  VM done[NV];
+  for (int v = 0; v < NV; ++v) {
+    T[v] = VF(1.f);
+    A[v] = dp[v] = pp[v] = cnt[v] = last[v] = dfront[v] = VF(0.f);
+    done[v] = mnot(L[v].valid);
+  }
   const VF kmaxf(float(sc.kmax));
   const bool need_head = SOFT || R > 0;
   int64_t pairs = 0;
   for (int i = 0; i < n; ++i) {
-    const float* s = sc.pk + size_t(tl[lst[i]]) * sc.S;
-    const VM act = mnot(done);
-    pairs += popcount(act);
-    const Quad<VF> k = splat_quad(L.px, L.py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
-    const VM inq = mand(act, k.q <= VF(kQMax));
-    if (!any(inq)) continue;
-    const Absorb<VF> ab = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]);
-    VM reach = mand(inq, ab.a >= VF(kAlphaMin));
-    if (!any(reach)) continue;
-    const VF T0 = T * (VF(1.f) - ab.a);
-    const VM stop = mand(reach, T0 < VF(kTMin));  // 3DGS: not composited, the pixel is done
-    done = mor(done, stop);
-    reach = mand(reach, mnot(stop));
-    if (any(reach)) {
-      const float d = s[P_D];
-      const float* col = s + P_COL;
-      VM head = need_head ? mand(reach, cnt < kmaxf) : reach;
+    const float* s = rows + size_t(lst[i]) * Sp;
+    // The early-outs test the splat alone, not `done`: a branch on `done` would wait for the
+    // previous splat's whole q -> exp -> T chain before it resolves.
+    Quad<VF> k[NV];
+    VM inq[NV];
+    unsigned anyq = 0;
+    for (int v = 0; v < NV; ++v) {
+      pairs += popcount(mnot(done[v]));
+      k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+      inq[v] = k[v].q <= VF(kQMax);
+      anyq |= bits(inq[v]);
+    }
+    if (!anyq) continue;
+    Absorb<VF> ab[NV];
+    VM reach[NV];
+    unsigned anyr = 0;
+    for (int v = 0; v < NV; ++v) {
+      ab[v] = splat_absorb<GEF>(k[v].q, s[P_O], s[P_AL]);
+      reach[v] = mand(inq[v], ab[v].a >= VF(kAlphaMin));
+      anyr |= bits(reach[v]);
+    }
+    if (!anyr) continue;
+    const float d = s[P_D];
+    const float* col = s + P_COL;
+    bool alldone = true;
+    for (int v = 0; v < NV; ++v) {
+      VF* Cv = C + v * nc;
+      reach[v] = mand(reach[v], mnot(done[v]));
+      const VF a = ab[v].a;
+      const VF T0 = T[v] * (VF(1.f) - a);
+      const VM stop = mand(reach[v], T0 < VF(kTMin));  // 3DGS: not composited, the pixel is done
+      done[v] = mor(done[v], stop);
+      const VM rv = mand(reach[v], mnot(stop));
+      const VM head = need_head ? mand(rv, cnt[v] < kmaxf) : rv;
       if (SOFT) {
-        const VM soft = mand(head, A > VF(0.f));
-        const VF p = -k.q;
-        Coef<VF> cf = vanilla_coef(T, A, ab.a);
+        const VM soft = mand(head, A[v] > VF(0.f));
+        const VF p = -k[v].q;
+        Coef<VF> cf = vanilla_coef(T[v], A[v], a);
         if (any(soft)) {
-          const SoftFwd<VF> f = softmax_fwd(T, A, dp, pp, ab.a, p, d, s[P_BE], s[P_GA], sc.solved);
+          const SoftFwd<VF> f = softmax_fwd(T[v], A[v], dp[v], pp[v], a, p, d, s[P_BE], s[P_GA], sc.solved);
           cf.Tn = sel(soft, f.T0, cf.Tn);
           cf.An = sel(soft, f.U, cf.An);
           cf.r = sel(soft, f.r, cf.r);
           cf.aT = sel(soft, f.aT, cf.aT);
           cf.wk = sel(soft, f.wk, cf.wk);
         }
-        for (int c = 0; c < nch; ++c) C[c] = sel(reach, C[c] * cf.r + VF(col[c]) * cf.aT, C[c]);
-        C[nch] = sel(reach, C[nch] * cf.r + VF(d) * cf.aT, C[nch]);
-        dp = sel(head, dp + (VF(d) - dp) * cf.wk, dp);
-        pp = sel(head, pp + (p - pp) * cf.wk, pp);
-        T = sel(reach, cf.Tn, T);
-        A = sel(reach, cf.An, A);
+        for (int c = 0; c < nch; ++c) Cv[c] = sel(rv, Cv[c] * cf.r + VF(col[c]) * cf.aT, Cv[c]);
+        Cv[nch] = sel(rv, Cv[nch] * cf.r + VF(d) * cf.aT, Cv[nch]);
+        dp[v] = sel(head, dp[v] + (VF(d) - dp[v]) * cf.wk, dp[v]);
+        pp[v] = sel(head, pp[v] + (p - pp[v]) * cf.wk, pp[v]);
+        T[v] = sel(rv, cf.Tn, T[v]);
+        A[v] = sel(rv, cf.An, A[v]);
       } else {
-        const VF aT = ab.a * T;
-        for (int c = 0; c < nch; ++c) C[c] = sel(reach, C[c] + VF(col[c]) * aT, C[c]);
-        C[nch] = sel(reach, C[nch] + VF(d) * aT, C[nch]);
-        A = sel(reach, A + aT, A);
-        T = sel(reach, T0, T);
+        const VF aT = a * T[v];
+        for (int c = 0; c < nch; ++c) Cv[c] = sel(rv, Cv[c] + VF(col[c]) * aT, Cv[c]);
+        Cv[nch] = sel(rv, Cv[nch] + VF(d) * aT, Cv[nch]);
+        A[v] = sel(rv, A[v] + aT, A[v]);
+        T[v] = sel(rv, T0, T[v]);
       }
       if (R) {  // variance regulariser sums over the first k_max composited splats
-        const VM first = mand(head, cnt == VF(0.f));
-        dfront = sel(first, VF(d), dfront);
-        VF w = VF(1.f) / (VF(1.f) + (VF(d) - dfront) / VF(sc.reg_scale));
+        VF* RGv = RG + v * (1 + 2 * R);
+        const VM first = mand(head, cnt[v] == VF(0.f));
+        dfront[v] = sel(first, VF(d), dfront[v]);
+        VF w = VF(1.f) / (VF(1.f) + (VF(d) - dfront[v]) / VF(sc.reg_scale));
         w = sel(head, w, VF(0.f));
-        RG[0] = RG[0] + w;
+        RGv[0] = RGv[0] + w;
         for (int r = 0; r < R; ++r) {
-          const VF v(s[P_COL + nch + r]);
-          RG[1 + r] = RG[1 + r] + w * v;
-          RG[1 + R + r] = RG[1 + R + r] + w * v * v;
+          const VF rvv(s[P_COL + nch + r]);
+          RGv[1 + r] = RGv[1 + r] + w * rvv;
+          RGv[1 + R + r] = RGv[1 + R + r] + w * rvv * rvv;
         }
       }
-      cnt = sel(reach, cnt + VF(1.f), cnt);
-      last = sel(reach, VF(float(i + 1)), last);
+      cnt[v] = sel(rv, cnt[v] + VF(1.f), cnt[v]);
+      last[v] = sel(rv, VF(float(i + 1)), last[v]);
+      alldone = alldone && all(done[v]);
     }
-    if (all(done)) break;
+    if (alldone) break;
   }
   // outputs
-  for (int c = 0; c < nch; ++c) {
-    VF v = C[c];
-    if (sc.bg) v = v + T * VF(sc.bg[c]);
-    L.scatter(o.rgb, nch, c, v);
-  }
-  const VM pos = A > VF(0.f);
-  L.scatter(o.alpha, 1, 0, A);
-  L.scatter(o.depth, 1, 0, sel(pos, C[nch] / sel(pos, A, VF(1.f)), VF(0.f)));
-  L.scatter(o.Tf, 1, 0, T);
-  if (R)
-    for (int c = 0; c < 1 + 2 * R; ++c) L.scatter(o.reg, 1 + 2 * R, c, RG[c]);
-  alignas(64) float tls[kLanes], tc[kLanes];
-  store(tls, last);
-  store(tc, cnt);
-  for (int l = 0; l < kLanes; ++l)
-    if (L.idx[l] >= 0) {
-      o.last[L.idx[l]] = int32_t(tls[l]);
-      o.cnt[L.idx[l]] = int32_t(tc[l]);
+  for (int v = 0; v < NV; ++v) {
+    const VF* Cv = C + v * nc;
+    for (int c = 0; c < nch; ++c) {
+      VF x = Cv[c];
+      if (sc.bg) x = x + T[v] * VF(sc.bg[c]);
+      L[v].scatter(o.rgb, nch, c, x);
     }
+    const VM pos = A[v] > VF(0.f);
+    L[v].scatter(o.alpha, 1, 0, A[v]);
+    L[v].scatter(o.depth, 1, 0, sel(pos, Cv[nch] / sel(pos, A[v], VF(1.f)), VF(0.f)));
+    L[v].scatter(o.Tf, 1, 0, T[v]);
+    if (R)
+      for (int c = 0; c < 1 + 2 * R; ++c) L[v].scatter(o.reg, 1 + 2 * R, c, RG[v * (1 + 2 * R) + c]);
+    alignas(64) float tls[kLanes], tc[kLanes];
+    store(tls, last[v]);
+    store(tc, cnt[v]);
+    for (int l = 0; l < kLanes; ++l)
+      if (L[v].idx[l] >= 0) {
+        o.last[L[v].idx[l]] = int32_t(tls[l]);
+        o.cnt[L[v].idx[l]] = int32_t(tc[l]);
+      }
+  }
   return pairs;
 }
 
@@ -601,10 +692,10 @@ static int64_t forward_impl(const Scene& sc, const FwdOut& o) {
     for (int t = 0; t < nt; ++t) {
       build_block_lists(sc, t, bl);
       const int tx0 = (t % sc.tiles_x) * kTileSize, ty0 = (t / sc.tiles_x) * kTileSize;
-      for (int b = 0; b < 16; ++b) {
-        const int x0 = tx0 + (b & 3) * 4, y0 = ty0 + (b >> 2) * 4;
+      for (int b = 0; b < kNB; ++b) {
+        const int x0 = tx0 + (b % kBX) * kBW, y0 = ty0 + (b / kBX) * 4;
         if (x0 >= sc.W || y0 >= sc.H) continue;
-        pairs += fwd_block<GEF, SOFT, NCT>(sc, sc.tlist + sc.toff[t], bl.list(b), bl.count[b], x0, y0, o, scr);
+        pairs += fwd_block<GEF, SOFT, NCT>(sc, bl.rows.data(), bl.Sp, bl.list(b), bl.count[b], x0, y0, o, scr);
       }
     }
   }
@@ -618,244 +709,304 @@ struct BwdIn {
   const int32_t* last;
 };
 
-// Per-thread scratch for the recomputed softmax heads of one block.
+// Per-thread scratch for the recomputed softmax heads of one block: one entry per list position
+// where some lane composites one of its first k_max splats (so at most 2·16·k_max entries).
 struct HeadScratch {
-  std::vector<VF> st;  // per entry: T, A, d_past, p_past, C[nc]
+  std::vector<VF> st;  // per entry and vector: T, A, d_past, p_past, C[nc]
   std::vector<int32_t> pos;
-  std::vector<uint32_t> mask;
+  std::vector<uint32_t> mask;  // per entry and vector
 };
 
+// G: gradient rows (stride Sp, pk layout) of this tile's list entries, summed over its blocks.
 template <bool GEF, bool SOFT, int NCT>
-// G: gradient rows of this tile's list entries (pk layout), summed over the tile's blocks.
-static void bwd_block(const Scene& sc, const int32_t* tl, const int32_t* lst, int n, int x0, int y0,
+static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t* lst, int n, int x0, int y0,
                       const BwdIn& in, float* G, Scratch& scr, HeadScratch& hs) {
+  constexpr int NV = kNV;
   const int nch = NCT ? NCT : sc.nch;
   const int nc = nch + 1;
   const int R = sc.R;
-  const int S = sc.S;  // gradient rows have the pk layout
-  const Lanes L(x0, y0, sc.W, sc.H);
+  Lanes L[NV];
+  for (int v = 0; v < NV; ++v) L[v].init(x0 + 4 * v, y0, sc.W, sc.H);
   Chan<NCT> cs1, cs2;
-  VF* gC = cs1.p(scr, 0, nc);   // adjoint of the colour state (depth is channel nch)
-  VF* C1 = cs2.p(scr, 1, nc);   // phase 1 colour state
-  VF* gR = scr.get(2, 2 * R);   // dL/d reg sums Σw·v_r and Σw·v_r²
-
-  // dL/d outputs -> dL/d final state
-  const VF Aout = L.gather(in.alpha, 1, 0, 0.f);
-  const VF dout = L.gather(in.depth, 1, 0, 0.f);
-  const VF g_alpha = L.gather(in.g_alpha, 1, 0, 0.f);
-  const VF g_depth = L.gather(in.g_depth, 1, 0, 0.f);
-  VF gT(0.f);
-  for (int c = 0; c < nch; ++c) {
-    gC[c] = L.gather(in.g_rgb, nch, c, 0.f);
-    if (sc.bg) gT = gT + gC[c] * VF(sc.bg[c]);
-  }
-  const VM posA = Aout > VF(0.f);
-  const VF Asafe = sel(posA, Aout, VF(1.f));
-  gC[nch] = sel(posA, g_depth / Asafe, VF(0.f));            // depth = C_d / A
-  VF gA = g_alpha - sel(posA, g_depth * dout / Asafe, VF(0.f));
-  VF T = L.gather(in.Tf, 1, 0, 1.f);
-  alignas(64) float lastf[kLanes];
+  VF* gC = cs1.p(scr, 0, NV * nc);   // adjoint of the colour state (depth is channel nch)
+  VF* C1 = cs2.p(scr, 1, NV * nc);   // phase 1 colour state
+  VF* gR = scr.get(2, NV * 2 * R);   // dL/d reg sums Σw·v_r and Σw·v_r²
+  VF gT[NV], gA[NV], T[NV], last[NV];
   int imax = 0;
-  for (int l = 0; l < kLanes; ++l) {
-    const int v = L.idx[l] >= 0 ? in.last[L.idx[l]] : 0;
-    lastf[l] = float(v);
-    imax = std::max(imax, v);
+  for (int v = 0; v < NV; ++v) {
+    // dL/d outputs -> dL/d final state
+    const VF Aout = L[v].gather(in.alpha, 1, 0, 0.f);
+    const VF dout = L[v].gather(in.depth, 1, 0, 0.f);
+    const VF g_alpha = L[v].gather(in.g_alpha, 1, 0, 0.f);
+    const VF g_depth = L[v].gather(in.g_depth, 1, 0, 0.f);
+    gT[v] = VF(0.f);
+    for (int c = 0; c < nch; ++c) {
+      gC[v * nc + c] = L[v].gather(in.g_rgb, nch, c, 0.f);
+      if (sc.bg) gT[v] = gT[v] + gC[v * nc + c] * VF(sc.bg[c]);   // rgb += T·bg
+    }
+    const VM posA = Aout > VF(0.f);
+    const VF Asafe = sel(posA, Aout, VF(1.f));
+    gC[v * nc + nch] = sel(posA, g_depth / Asafe, VF(0.f));            // depth = C_d / A
+    gA[v] = g_alpha - sel(posA, g_depth * dout / Asafe, VF(0.f));
+    T[v] = L[v].gather(in.Tf, 1, 0, 1.f);
+    alignas(64) float lastf[kLanes];
+    for (int l = 0; l < kLanes; ++l) {
+      const int x = L[v].idx[l] >= 0 ? in.last[L[v].idx[l]] : 0;
+      lastf[l] = float(x);
+      imax = std::max(imax, x);
+    }
+    last[v] = load(lastf);
   }
   if (imax == 0) return;
-  const VF last = load(lastf);
   const VF kmaxf(float(sc.kmax));
+  const size_t esz = size_t(4 + nc);  // vectors per entry and block vector
 
   // Phase 1: recompute each lane's head (its first k_max composited splats) front to back, saving
   // the state before every head step (softmax modes) and taking the regulariser's gradients.
   int ne = 0;
   if ((SOFT || R) && sc.kmax > 0) {
-    VF T1(1.f), A1(0.f), dp1(0.f), pp1(0.f), cnt1(0.f), dfront(0.f);
-    for (int c = 0; c < nc; ++c) C1[c] = VF(0.f);
-    if (R)
-      for (int r = 0; r < 2 * R; ++r) gR[r] = L.gather(in.g_reg, 1 + 2 * R, 1 + r, 0.f);
-    const size_t esz = size_t(4 + nc);
+    VF T1[NV], A1[NV], dp1[NV], pp1[NV], cnt1[NV], dfront[NV];
+    for (int v = 0; v < NV; ++v) {
+      T1[v] = VF(1.f);
+      A1[v] = dp1[v] = pp1[v] = cnt1[v] = dfront[v] = VF(0.f);
+      for (int c = 0; c < nc; ++c) C1[v * nc + c] = VF(0.f);
+      for (int r = 0; r < 2 * R; ++r) gR[v * 2 * R + r] = L[v].gather(in.g_reg, 1 + 2 * R, 1 + r, 0.f);
+    }
     for (int i = 0; i < imax; ++i) {
-      const VM hv = mand(VF(float(i)) < last, cnt1 < kmaxf);
-      if (!any(hv)) break;
+      VM hv[NV];
+      unsigned anyh = 0;
+      for (int v = 0; v < NV; ++v) {
+        hv[v] = mand(VF(float(i)) < last[v], cnt1[v] < kmaxf);
+        anyh |= bits(hv[v]);
+      }
+      if (!anyh) break;
       const int j = lst[i];
-      const float* s = sc.pk + size_t(tl[j]) * S;
-      const Quad<VF> k = splat_quad(L.px, L.py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
-      const VM inq = mand(hv, k.q <= VF(kQMax));
-      if (!any(inq)) continue;
-      const Absorb<VF> ab = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]);
-      const VM reach = mand(inq, ab.a >= VF(kAlphaMin));  // before `last`: composited, never stopped
-      if (!any(reach)) continue;
+      const float* s = rows + size_t(j) * Sp;
+      Quad<VF> k[NV];
+      VM reach[NV];
+      unsigned anyq = 0, anyr = 0;
+      for (int v = 0; v < NV; ++v) {
+        k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+        reach[v] = mand(hv[v], k[v].q <= VF(kQMax));
+        anyq |= bits(reach[v]);
+      }
+      if (!anyq) continue;
+      Absorb<VF> ab[NV];
+      for (int v = 0; v < NV; ++v) {
+        ab[v] = splat_absorb<GEF>(k[v].q, s[P_O], s[P_AL]);
+        reach[v] = mand(reach[v], ab[v].a >= VF(kAlphaMin));  // before `last`: composited, never stopped
+        anyr |= bits(reach[v]);
+      }
+      if (!anyr) continue;
       const float d = s[P_D];
+      const float* col = s + P_COL;
       if (SOFT) {
         if (hs.pos.size() <= size_t(ne)) {
           hs.pos.resize(ne + 64);
-          hs.mask.resize(ne + 64);
-          hs.st.resize((ne + 64) * esz);
+          hs.mask.resize(NV * (ne + 64));
+          hs.st.resize((ne + 64) * NV * esz);
         }
-        VF* e = hs.st.data() + ne * esz;
-        e[0] = T1;
-        e[1] = A1;
-        e[2] = dp1;
-        e[3] = pp1;
-        for (int c = 0; c < nc; ++c) e[4 + c] = C1[c];
         hs.pos[ne] = i;
-        hs.mask[ne] = bits(reach);
-        ++ne;
-        const VM soft = mand(reach, A1 > VF(0.f));
-        const VF p = -k.q;
-        Coef<VF> cf = vanilla_coef(T1, A1, ab.a);
-        if (any(soft)) {
-          const SoftFwd<VF> f = softmax_fwd(T1, A1, dp1, pp1, ab.a, p, d, s[P_BE], s[P_GA], sc.solved);
-          cf.Tn = sel(soft, f.T0, cf.Tn);
-          cf.An = sel(soft, f.U, cf.An);
-          cf.r = sel(soft, f.r, cf.r);
-          cf.aT = sel(soft, f.aT, cf.aT);
-          cf.wk = sel(soft, f.wk, cf.wk);
+        for (int v = 0; v < NV; ++v) {
+          VF* e = hs.st.data() + (size_t(ne) * NV + v) * esz;
+          e[0] = T1[v];
+          e[1] = A1[v];
+          e[2] = dp1[v];
+          e[3] = pp1[v];
+          for (int c = 0; c < nc; ++c) e[4 + c] = C1[v * nc + c];
+          hs.mask[ne * NV + v] = bits(reach[v]);
         }
-        const float* col = s + P_COL;
-        for (int c = 0; c < nch; ++c) C1[c] = sel(reach, C1[c] * cf.r + VF(col[c]) * cf.aT, C1[c]);
-        C1[nch] = sel(reach, C1[nch] * cf.r + VF(d) * cf.aT, C1[nch]);
-        dp1 = sel(reach, dp1 + (VF(d) - dp1) * cf.wk, dp1);
-        pp1 = sel(reach, pp1 + (p - pp1) * cf.wk, pp1);
-        T1 = sel(reach, cf.Tn, T1);
-        A1 = sel(reach, cf.An, A1);
+        ++ne;
+        for (int v = 0; v < NV; ++v) {
+          const VM rv = reach[v];
+          if (!any(rv)) continue;
+          const VF a = ab[v].a;
+          const VM soft = mand(rv, A1[v] > VF(0.f));
+          const VF p = -k[v].q;
+          Coef<VF> cf = vanilla_coef(T1[v], A1[v], a);
+          if (any(soft)) {
+            const SoftFwd<VF> f = softmax_fwd(T1[v], A1[v], dp1[v], pp1[v], a, p, d, s[P_BE], s[P_GA], sc.solved);
+            cf.Tn = sel(soft, f.T0, cf.Tn);
+            cf.An = sel(soft, f.U, cf.An);
+            cf.r = sel(soft, f.r, cf.r);
+            cf.aT = sel(soft, f.aT, cf.aT);
+            cf.wk = sel(soft, f.wk, cf.wk);
+          }
+          VF* Cv = C1 + v * nc;
+          for (int c = 0; c < nch; ++c) Cv[c] = sel(rv, Cv[c] * cf.r + VF(col[c]) * cf.aT, Cv[c]);
+          Cv[nch] = sel(rv, Cv[nch] * cf.r + VF(d) * cf.aT, Cv[nch]);
+          dp1[v] = sel(rv, dp1[v] + (VF(d) - dp1[v]) * cf.wk, dp1[v]);
+          pp1[v] = sel(rv, pp1[v] + (p - pp1[v]) * cf.wk, pp1[v]);
+          T1[v] = sel(rv, cf.Tn, T1[v]);
+          A1[v] = sel(rv, cf.An, A1[v]);
+        }
       }
       if (R) {
-        const VM first = mand(reach, cnt1 == VF(0.f));
-        dfront = sel(first, VF(d), dfront);
-        const VF w = VF(1.f) / (VF(1.f) + (VF(d) - dfront) / VF(sc.reg_scale));
-        float* g = G + size_t(j) * S + P_COL + nch;
-        for (int r = 0; r < R; ++r) {
-          const VF v(s[P_COL + nch + r]);
-          // reg = Σ w·[1, v, v·v]: d/dv = w·g1 + 2·w·v·g2 (the weights carry no gradient)
-          g[r] += hsum(sel(reach, w * gR[r] + VF(2.f) * w * v * gR[R + r], VF(0.f)));
+        float* g = G + size_t(j) * Sp + P_COL + nch;
+        for (int v = 0; v < NV; ++v) {
+          const VM first = mand(reach[v], cnt1[v] == VF(0.f));
+          dfront[v] = sel(first, VF(d), dfront[v]);
+          const VF w = VF(1.f) / (VF(1.f) + (VF(d) - dfront[v]) / VF(sc.reg_scale));
+          for (int r = 0; r < R; ++r) {
+            const VF rvv(s[P_COL + nch + r]);
+            // reg = Σ w·[1, v, v·v]: d/dv = w·g1 + 2·w·v·g2 (the weights carry no gradient)
+            g[r] += hsum(sel(reach[v], w * gR[v * 2 * R + r] + VF(2.f) * w * rvv * gR[v * 2 * R + R + r], VF(0.f)));
+          }
         }
       }
-      cnt1 = sel(reach, cnt1 + VF(1.f), cnt1);
+      for (int v = 0; v < NV; ++v) cnt1[v] = sel(reach[v], cnt1[v] + VF(1.f), cnt1[v]);
     }
   }
 
   // Phase 2: back to front over every composited splat.
-  VF gdp(0.f), gpp(0.f);  // adjoints of the running means, non-zero only inside a lane's head
+  VF gdp[NV], gpp[NV];  // adjoints of the running means, non-zero only inside a lane's head
+  for (int v = 0; v < NV; ++v) gdp[v] = gpp[v] = VF(0.f);
   int e = ne - 1;
-  const size_t esz = size_t(4 + nc);
+  const VF zero(0.f);
   for (int i = imax - 1; i >= 0; --i) {
-    const VM valid = VF(float(i)) < last;
     const int j = lst[i];
-    const float* s = sc.pk + size_t(tl[j]) * S;
-    const Quad<VF> k = splat_quad(L.px, L.py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
-    const VM inq = mand(valid, k.q <= VF(kQMax));
-    if (!any(inq)) continue;
-    const Absorb<VF> ab = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]);
-    const VM reach = mand(inq, ab.a >= VF(kAlphaMin));
-    if (!any(reach)) continue;
+    const float* s = rows + size_t(j) * Sp;
+    Quad<VF> k[NV];
+    VM reach[NV];
+    unsigned anyq = 0, anyr = 0;
+    for (int v = 0; v < NV; ++v) {
+      k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+      reach[v] = mand(VF(float(i)) < last[v], k[v].q <= VF(kQMax));
+      anyq |= bits(reach[v]);
+    }
+    if (!anyq) continue;
+    Absorb<VF> ab[NV];
+    for (int v = 0; v < NV; ++v) {
+      ab[v] = splat_absorb<GEF>(k[v].q, s[P_O], s[P_AL]);
+      reach[v] = mand(reach[v], ab[v].a >= VF(kAlphaMin));
+      anyr |= bits(reach[v]);
+    }
+    if (!anyr) continue;
     const float d = s[P_D];
     const float* col = s + P_COL;
-    const VF a = ab.a;
-    const VF p = -k.q;
-    // state before the step: the 3DGS inverse for tail lanes, the saved state for head lanes
-    VF Tpre = T / (VF(1.f) - a);
-    VF Apre(0.f), dpre(0.f), ppre(0.f);
-    VM hm = mask_from_bits(0);
     const VF* ent = nullptr;
+    unsigned hmb[NV] = {};
     if (SOFT && e >= 0 && hs.pos[e] == i) {
-      hm = mask_from_bits(hs.mask[e]);
-      ent = hs.st.data() + size_t(e) * esz;
-      Tpre = sel(hm, ent[0], Tpre);
-      Apre = sel(hm, ent[1], Apre);
-      dpre = sel(hm, ent[2], dpre);
-      ppre = sel(hm, ent[3], ppre);
+      ent = hs.st.data() + size_t(e) * NV * esz;
+      for (int v = 0; v < NV; ++v) hmb[v] = hs.mask[e * NV + v];
       --e;
     }
-    VF g_a, g_p(0.f), g_d(0.f), g_be(0.f), g_ga(0.f);
-    VF gTn, gAn;
-    if (SOFT) {
-      const VM soft = mand(hm, Apre > VF(0.f));
-      Coef<VF> cf = vanilla_coef(Tpre, Apre, a);
-      SoftFwd<VF> f;
-      const bool anysoft = any(soft);
-      if (anysoft) {
-        f = softmax_fwd(Tpre, Apre, dpre, ppre, a, p, d, s[P_BE], s[P_GA], sc.solved);
-        cf.r = sel(soft, f.r, cf.r);
-        cf.aT = sel(soft, f.aT, cf.aT);
-        cf.wk = sel(soft, f.wk, cf.wk);
+    // per-lane gradients of this splat's parameters, in the pk layout (summed over vectors)
+    VF gv[16];
+    for (int c = 0; c < 16; ++c) gv[c] = zero;
+    for (int v = 0; v < NV; ++v) {
+      const VM rv = reach[v];
+      if (!any(rv)) continue;
+      VF* gCv = gC + v * nc;
+      const VF a = ab[v].a;
+      const VF p = -k[v].q;
+      // state before the step: the 3DGS inverse for tail lanes, the saved state for head lanes
+      VF Tpre = T[v] / (VF(1.f) - a);
+      VF Apre(0.f), dpre(0.f), ppre(0.f);
+      const VM hm = mask_from_bits(hmb[v]);
+      const VF* ev = ent ? ent + v * esz : nullptr;
+      if (SOFT && hmb[v]) {
+        Tpre = sel(hm, ev[0], Tpre);
+        Apre = sel(hm, ev[1], Apre);
+        dpre = sel(hm, ev[2], dpre);
+        ppre = sel(hm, ev[3], ppre);
       }
-      // adjoint of C' = C·r + c·aT (depth is channel nch)
-      VF g_r(0.f), g_aT(0.f);
-      for (int c = 0; c < nc; ++c) {
-        const float cv = c < nch ? col[c] : d;
-        g_aT = g_aT + gC[c] * VF(cv);
-      }
-      float* g = G + size_t(j) * S;
-      for (int c = 0; c < nch; ++c) g[P_COL + c] += hsum(sel(reach, gC[c] * cf.aT, VF(0.f)));
-      g_d = gC[nch] * cf.aT;
-      if (anysoft) {
-        for (int c = 0; c < nc; ++c) {
-          g_r = g_r + gC[c] * ent[4 + c];
-          gC[c] = sel(soft, gC[c] * cf.r, gC[c]);
+      VF g_a, g_p(0.f), g_d(0.f), g_be(0.f), g_ga(0.f);
+      VF gTn, gAn;
+      if (SOFT) {
+        const VM soft = mand(hm, Apre > VF(0.f));
+        Coef<VF> cf = vanilla_coef(Tpre, Apre, a);
+        SoftFwd<VF> f;
+        const bool anysoft = any(soft);
+        if (anysoft) {
+          f = softmax_fwd(Tpre, Apre, dpre, ppre, a, p, d, s[P_BE], s[P_GA], sc.solved);
+          cf.r = sel(soft, f.r, cf.r);
+          cf.aT = sel(soft, f.aT, cf.aT);
+          cf.wk = sel(soft, f.wk, cf.wk);
         }
+        // adjoint of C' = C·r + c·aT (depth is channel nch)
+        VF g_r(0.f), g_aT(0.f);
+        for (int c = 0; c < nch; ++c) g_aT = g_aT + gCv[c] * VF(col[c]);
+        g_aT = g_aT + gCv[nch] * VF(d);
+        for (int c = 0; c < nch; ++c) {
+          const VF x = sel(rv, gCv[c] * cf.aT, zero);
+          if (P_COL + c < 16) gv[P_COL + c] = gv[P_COL + c] + x;
+          else G[size_t(j) * Sp + P_COL + c] += hsum(x);
+        }
+        g_d = gCv[nch] * cf.aT;
+        if (anysoft) {
+          for (int c = 0; c < nc; ++c) {
+            g_r = g_r + gCv[c] * ev[4 + c];
+            gCv[c] = sel(soft, gCv[c] * cf.r, gCv[c]);
+          }
+        }
+        // adjoint of the running means d' = d + (d_k - d)·wk, p' likewise (head lanes only)
+        const VF g_wk = sel(hm, gdp[v] * (VF(d) - dpre) + gpp[v] * (p - ppre), zero);
+        g_d = g_d + sel(hm, gdp[v] * cf.wk, zero);
+        g_p = sel(hm, gpp[v] * cf.wk, zero);
+        gdp[v] = sel(hm, gdp[v] - gdp[v] * cf.wk, gdp[v]);
+        gpp[v] = sel(hm, gpp[v] - gpp[v] * cf.wk, gpp[v]);
+        VF gTv, gAv, gav;
+        vanilla_coef_bwd(Tpre, Apre, a, gT[v], gA[v], g_aT, g_wk, gTv, gAv, gav);
+        gTn = gTv;
+        gAn = gAv;
+        g_a = gav;
+        if (anysoft) {
+          const SoftGrad<VF> sg = softmax_bwd(f, Tpre, Apre, dpre, ppre, a, p, s[P_BE], s[P_GA], sc.solved,
+                                              gT[v], gA[v], g_r, g_aT, g_wk);
+          gTn = sel(soft, sg.T, gTn);
+          gAn = sel(soft, sg.A, gAn);
+          g_a = sel(soft, sg.a, g_a);
+          g_p = g_p + sel(soft, sg.p, zero);
+          g_d = g_d + sel(soft, sg.d, zero);
+          gdp[v] = gdp[v] + sel(soft, sg.dp, zero);
+          gpp[v] = gpp[v] + sel(soft, sg.pp, zero);
+          g_be = sel(soft, sg.beta, zero);
+          g_ga = sel(soft, sg.gamma, zero);
+        }
+      } else {
+        // 3DGS: C' = C + c·aT, A' = A + aT, T' = T(1-a)
+        const VF aT = a * Tpre;
+        VF g_aT = gA[v];
+        for (int c = 0; c < nch; ++c) g_aT = g_aT + gCv[c] * VF(col[c]);
+        g_aT = g_aT + gCv[nch] * VF(d);
+        for (int c = 0; c < nch; ++c) {
+          const VF x = sel(rv, gCv[c] * aT, zero);
+          if (P_COL + c < 16) gv[P_COL + c] = gv[P_COL + c] + x;
+          else G[size_t(j) * Sp + P_COL + c] += hsum(x);
+        }
+        g_d = gCv[nch] * aT;
+        g_a = g_aT * Tpre - gT[v] * Tpre;
+        gTn = g_aT * a + gT[v] * (VF(1.f) - a);
+        gAn = gA[v];
       }
-      // adjoint of the running means d' = d + (d_k - d)·wk, p' likewise (head lanes only)
-      const VF g_wk = sel(hm, gdp * (VF(d) - dpre) + gpp * (p - ppre), VF(0.f));
-      g_d = g_d + sel(hm, gdp * cf.wk, VF(0.f));
-      g_p = sel(hm, gpp * cf.wk, VF(0.f));
-      gdp = sel(hm, gdp - gdp * cf.wk, gdp);
-      gpp = sel(hm, gpp - gpp * cf.wk, gpp);
-      VF gTv, gAv, gav;
-      vanilla_coef_bwd(Tpre, Apre, a, gT, gA, g_aT, g_wk, gTv, gAv, gav);
-      gTn = gTv;
-      gAn = gAv;
-      g_a = gav;
-      if (anysoft) {
-        const SoftGrad<VF> sg = softmax_bwd(f, Tpre, Apre, dpre, ppre, a, p, s[P_BE], s[P_GA], sc.solved, gT, gA,
-                                            g_r, g_aT, g_wk);
-        gTn = sel(soft, sg.T, gTn);
-        gAn = sel(soft, sg.A, gAn);
-        g_a = sel(soft, sg.a, g_a);
-        g_p = g_p + sel(soft, sg.p, VF(0.f));
-        g_d = g_d + sel(soft, sg.d, VF(0.f));
-        gdp = gdp + sel(soft, sg.dp, VF(0.f));
-        gpp = gpp + sel(soft, sg.pp, VF(0.f));
-        g_be = sel(soft, sg.beta, VF(0.f));
-        g_ga = sel(soft, sg.gamma, VF(0.f));
+      gT[v] = sel(rv, gTn, gT[v]);
+      gA[v] = sel(rv, gAn, gA[v]);
+      T[v] = sel(rv, Tpre, T[v]);
+      const KernGrad<VF> kg =
+          splat_kernel_bwd<GEF>(k[v], ab[v], s[P_CA], s[P_CB], s[P_CC], s[P_O], s[P_AL], g_a, g_p);
+      gv[P_MX] = gv[P_MX] + sel(rv, kg.mx, zero);
+      gv[P_MY] = gv[P_MY] + sel(rv, kg.my, zero);
+      gv[P_CA] = gv[P_CA] + sel(rv, kg.ca, zero);
+      gv[P_CB] = gv[P_CB] + sel(rv, kg.cb, zero);
+      gv[P_CC] = gv[P_CC] + sel(rv, kg.cc, zero);
+      gv[P_O] = gv[P_O] + sel(rv, kg.o, zero);
+      gv[P_D] = gv[P_D] + sel(rv, g_d, zero);
+      if (GEF) gv[P_AL] = gv[P_AL] + sel(rv, kg.alpha, zero);
+      if (SOFT) {
+        gv[P_BE] = gv[P_BE] + sel(rv, g_be, zero);
+        gv[P_GA] = gv[P_GA] + sel(rv, g_ga, zero);
       }
-    } else {
-      // 3DGS: C' = C + c·aT, A' = A + aT, T' = T(1-a)
-      const VF aT = a * Tpre;
-      VF g_aT = gA;
-      for (int c = 0; c < nch; ++c) g_aT = g_aT + gC[c] * VF(col[c]);
-      g_aT = g_aT + gC[nch] * VF(d);
-      float* g = G + size_t(j) * S;
-      for (int c = 0; c < nch; ++c) g[P_COL + c] += hsum(sel(reach, gC[c] * aT, VF(0.f)));
-      g_d = gC[nch] * aT;
-      g_a = g_aT * Tpre - gT * Tpre;
-      gTn = g_aT * a + gT * (VF(1.f) - a);
-      gAn = gA;
     }
-    gT = sel(reach, gTn, gT);
-    gA = sel(reach, gAn, gA);
-    T = sel(reach, Tpre, T);
-    const KernGrad<VF> kg = splat_kernel_bwd<GEF>(k, ab, s[P_CA], s[P_CB], s[P_CC], s[P_O], s[P_AL], g_a, g_p);
-    float* g = G + size_t(j) * S;
-    const VF zero(0.f);
-    g[P_MX] += hsum(sel(reach, kg.mx, zero));
-    g[P_MY] += hsum(sel(reach, kg.my, zero));
-    g[P_CA] += hsum(sel(reach, kg.ca, zero));
-    g[P_CB] += hsum(sel(reach, kg.cb, zero));
-    g[P_CC] += hsum(sel(reach, kg.cc, zero));
-    g[P_O] += hsum(sel(reach, kg.o, zero));
-    g[P_D] += hsum(sel(reach, g_d, zero));
-    if (GEF) g[P_AL] += hsum(sel(reach, kg.alpha, zero));
-    if (SOFT) {
-      g[P_BE] += hsum(sel(reach, g_be, zero));
-      g[P_GA] += hsum(sel(reach, g_ga, zero));
-    }
+    float* g = G + size_t(j) * Sp;
+    store(g, load(g) + reduce16(gv));
   }
 }
 
 template <bool GEF, bool SOFT, int NCT>
 static void backward_impl(const Scene& sc, const BwdIn& in, float* E) {
   const int nt = sc.tiles_x * sc.tiles_y;
+  const int Sp = padded(sc.S);
 #pragma omp parallel num_threads(sc.nthreads)
   {
     BlockLists bl;
@@ -864,14 +1015,14 @@ static void backward_impl(const Scene& sc, const BwdIn& in, float* E) {
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < nt; ++t) {
       const int off = sc.toff[t];
-      float* G = E + size_t(off) * sc.S;
-      std::fill(G, G + size_t(sc.toff[t + 1] - off) * sc.S, 0.f);
+      float* G = E + size_t(off) * Sp;
+      std::fill(G, G + size_t(sc.toff[t + 1] - off) * Sp, 0.f);
       build_block_lists(sc, t, bl);
       const int tx0 = (t % sc.tiles_x) * kTileSize, ty0 = (t / sc.tiles_x) * kTileSize;
-      for (int b = 0; b < 16; ++b) {
-        const int x0 = tx0 + (b & 3) * 4, y0 = ty0 + (b >> 2) * 4;
+      for (int b = 0; b < kNB; ++b) {
+        const int x0 = tx0 + (b % kBX) * kBW, y0 = ty0 + (b / kBX) * 4;
         if (x0 >= sc.W || y0 >= sc.H) continue;
-        bwd_block<GEF, SOFT, NCT>(sc, sc.tlist + off, bl.list(b), bl.count[b], x0, y0, in, G, scr, hs);
+        bwd_block<GEF, SOFT, NCT>(sc, bl.rows.data(), bl.Sp, bl.list(b), bl.count[b], x0, y0, in, G, scr, hs);
       }
     }
   }
@@ -985,7 +1136,8 @@ std::vector<torch::Tensor> backward(torch::Tensor g_rgb, torch::Tensor g_alpha, 
   const int S = sc.S;
   // one gradient row per tile-list entry (each tile fills its own rows), then per splat the sum
   // over its tiles in a fixed order: gradients do not depend on the number of threads
-  torch::Tensor E = torch::empty({tlist.numel(), S}, torch::TensorOptions().dtype(torch::kFloat32));
+  const int Sp = padded(S);
+  torch::Tensor E = torch::empty({tlist.numel(), Sp}, torch::TensorOptions().dtype(torch::kFloat32));
   BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(),
            R ? g_reg.data_ptr<float>() : nullptr, alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(),
            Tf.data_ptr<float>(), last.data_ptr<int32_t>()};
@@ -1009,7 +1161,7 @@ std::vector<torch::Tensor> backward(torch::Tensor g_rgb, torch::Tensor g_alpha, 
     for (int j = 0; j < M; ++j) {
       std::fill(r.begin(), r.end(), 0.f);
       for (int k = so[j]; k < so[j + 1]; ++k) {
-        const float* e = Ep + size_t(sp[k]) * S;
+        const float* e = Ep + size_t(sp[k]) * Sp;
         for (int c = 0; c < S; ++c) r[c] += e[c];
       }
       const int64_t i = id[j];  // rows are in depth order; back to input order

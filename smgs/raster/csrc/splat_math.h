@@ -5,16 +5,23 @@
 // kernel) or a SIMD vector of pixels (the CPU kernel). The code is branch-free on per-pixel values
 // (`sel` instead of `if`), so one source serves both. The lane type provides, found by overload or
 // argument-dependent lookup: + - * / and unary -, comparisons giving a mask, mand/mor/mnot on masks,
-// sel(mask, a, b), min_c/max_c(x, c) (NaN in x propagates, as torch.clamp), vabs, vsqrt, vexp, vlog.
+// sel(mask, a, b), min_c/max_c(x, c) (NaN in x propagates, as torch.clamp), vabs, vsqrt, vexp, vlog,
+// vrcp (1/x) and vsqrt_pos (√x), both only for x > 0 normal, where a SIMD backend may use a fast
+// approximation accurate to ~1 ulp.
 // The scalar overloads are below. No containers, no host-only calls.
 //
 // The arithmetic is a transcription of smgs/raster/reference.py (the oracle) in the same operation
 // order, so that the float32 results agree with it to rounding; see that file's docstring for why
-// each stable form is used. Adjoints reverse each forward statement in turn.
+// each stable form is used. Adjoints reverse each forward statement in turn. One deliberate change:
+// every quotient by the same denominator (U, S, E, Q) multiplies by one shared reciprocal, since
+// divisions dominate the cost of a step (a rounding-level change, ~1 ulp).
 #pragma once
 
 #if defined(__CUDACC__)
-#define SMGS_HD __host__ __device__
+#define SMGS_HD __host__ __device__ __attribute__((always_inline))  // __forceinline__ would repeat `inline`
+#elif defined(__GNUC__)
+// Forced: a call that returns SoftFwd (27 vectors) through memory costs more than the step itself.
+#define SMGS_HD __attribute__((always_inline))
 #else
 #define SMGS_HD
 #endif
@@ -44,6 +51,8 @@ SMGS_HD inline float vabs(float x) { return fabsf(x); }
 SMGS_HD inline float vsqrt(float x) { return sqrtf(x); }
 SMGS_HD inline float vexp(float x) { return expf(x); }
 SMGS_HD inline float vlog(float x) { return logf(x); }
+SMGS_HD inline float vrcp(float x) { return 1.0f / x; }
+SMGS_HD inline float vsqrt_pos(float x) { return sqrtf(x); }
 
 // ---- the kernel: q = -p, the GEF exponent and the absorbance a ----------------------------------
 
@@ -137,7 +146,7 @@ SMGS_HD inline Coef<V> vanilla_coef(V T, V A, V a) {
   Coef<V> c;
   c.aT = a * T;
   c.An = A + c.aT;
-  c.wk = c.aT / c.An;
+  c.wk = c.aT / c.An;  // a true quotient: the first step's wk must be exactly 1 (mean of equal depths)
   c.Tn = T * (V(1.0f) - a);
   c.r = V(1.0f);
   return c;
@@ -150,9 +159,10 @@ SMGS_HD inline void vanilla_coef_bwd(V T, V A, V a, V g_Tn, V g_An, V g_aT, V g_
                                      V& g_a) {
   V aT = a * T;
   V U = A + aT;
-  V wk = aT / U;
-  g_aT = g_aT + g_wk / U;
-  V g_U = g_An - g_wk * wk / U;
+  V iU = vrcp(U);
+  V wk = aT * iU;
+  g_aT = g_aT + g_wk * iU;
+  V g_U = g_An - g_wk * wk * iU;
   g_A = g_U;
   g_aT = g_aT + g_U;
   g_a = g_aT * T - g_Tn * T;
@@ -164,8 +174,8 @@ SMGS_HD inline void vanilla_coef_bwd(V T, V A, V a, V g_Tn, V g_An, V g_aT, V g_
 // (default) or as printed in line 14.
 template <class V>
 struct SoftFwd {
-  V T0, U, w_cur, w_past, h_cur, h_past, S, t_past, X, E, t_cur, dd, ad, s, b_past, b_cur, diff, sq, Q,
-      m, a_cur, F, R1, r, T_past, aT, wk;
+  V T0, U, iU, w_cur, w_past, h_cur, h_past, S, iS, t_past, X, E, iE, t_cur, dd, ad, s, b_past, b_cur,
+      diff, sq, Q, iQ, m, a_cur, F, R1, r, T_past, aT, wk;
   decltype(V() < V()) flat, exact;
 };
 
@@ -176,20 +186,23 @@ SMGS_HD inline SoftFwd<V> softmax_fwd(V T, V A, V dp, V pp, V a, V p, float d, f
   const V one(1.0f), zero(0.0f);
   f.T0 = T * (one - a);                       // line 7, the original transmittance
   f.U = A + a * T;                            // 1 - T0 without cancellation
+  f.iU = vrcp(f.U);
   V x = V(beta) * (p - pp);                   // line 9
   // w_cur = σ(x), w_past = σ(-x) (line 11 as a second sigmoid, never 1 - w_cur): one exp
   V ex = vexp(-vabs(x));
-  V big = one / (one + ex), small = ex / (one + ex);
+  V big = vrcp(one + ex), small = ex * big;
   auto xpos = x >= zero;
   f.w_cur = sel(xpos, big, small);
   f.w_past = sel(xpos, small, big);
   f.h_cur = f.w_cur * a;                      // line 10
   f.h_past = f.w_past * A;                    // line 12
   f.S = f.h_past + f.h_cur;
-  f.t_past = f.h_past * f.U / f.S;            // eq. (15), ã_past
+  f.iS = vrcp(f.S);
+  f.t_past = f.h_past * f.U * f.iS;           // eq. (15), ã_past
   f.X = solved ? f.h_past : f.t_past;         // solved: un-updated â_past; printed: line 14
   f.E = f.h_cur + f.X * f.T0;
-  f.t_cur = f.h_cur * f.U / f.E;
+  f.iE = vrcp(f.E);
+  f.t_cur = f.h_cur * f.U * f.iE;
   f.dd = V(d) - dp;                           // line 15, γ|Δd| := 0 at Δd = 0, capped where s = 0
   f.ad = vabs(f.dd);
   auto z = f.dd == zero;
@@ -202,17 +215,18 @@ SMGS_HD inline SoftFwd<V> softmax_fwd(V T, V A, V dp, V pp, V a, V p, float d, f
   // non-negative terms; m = 1 exactly where it is 1 by construction
   f.diff = f.b_cur - f.b_past;
   V D = f.diff * f.diff + V(4.0f) * f.b_cur * f.b_past * f.T0;
-  f.sq = vsqrt(D);
+  f.sq = vsqrt_pos(D);                        // D > 0: b_cur and b_past are never both 0
   f.Q = f.b_past + f.b_cur + f.sq;
+  f.iQ = vrcp(f.Q);
   f.exact = mor(f.s == zero, mand(f.s == one, solved ? (zero == zero) : (zero != zero)));
-  f.m = sel(f.exact, one, V(2.0f) * f.U / f.Q);
+  f.m = sel(f.exact, one, V(2.0f) * f.U * f.iQ);
   f.a_cur = f.m * f.b_cur;                    // line 20
-  f.F = f.s * f.w_past * f.U / f.S;
+  f.F = f.s * f.w_past * f.U * f.iS;
   f.R1 = f.F + (one - f.s);
   f.r = f.m * f.R1;                           // ā_past / a_past, line 22
   f.T_past = T + A * (one - f.r);             // lines 19, 21 without cancellation
   f.aT = f.a_cur * f.T_past;                  // line 24
-  f.wk = f.aT / f.U;                          // share in the running means, lines 25-26
+  f.wk = f.aT * f.iU;                         // share in the running means, lines 25-26
   return f;
 }
 
@@ -241,8 +255,8 @@ SMGS_HD inline SoftGrad<V> softmax_bwd(const SoftFwd<V>& f, V T, V A, V dp, V pp
   SoftGrad<V> g;
   V g_T0 = g_Tn, g_U = g_An;
   // wk = aT / U
-  g_aT = g_aT + g_wk / f.U;
-  g_U = g_U - g_wk * f.wk / f.U;
+  g_aT = g_aT + g_wk * f.iU;
+  g_U = g_U - g_wk * f.wk * f.iU;
   // aT = a_cur · T_past
   V g_acur = g_aT * f.T_past;
   V g_Tpast = g_aT * f.a_cur;
@@ -255,9 +269,9 @@ SMGS_HD inline SoftGrad<V> softmax_bwd(const SoftFwd<V>& f, V T, V A, V dp, V pp
   V g_R1 = g_r * f.m;
   // R1 = F + (1 - s), F = s·w_past·U / S
   V g_s = -g_R1;
-  V g_swp = g_R1 * f.U / f.S;
-  g_U = g_U + g_R1 * (f.s * f.w_past) / f.S;
-  V g_S = -(g_R1 * f.F / f.S);
+  V g_swp = g_R1 * f.U * f.iS;
+  g_U = g_U + g_R1 * (f.s * f.w_past) * f.iS;
+  V g_S = -(g_R1 * f.F * f.iS);
   g_s = g_s + g_swp * f.w_past;
   V g_wpast = g_swp * f.s;
   // a_cur = m · b_cur
@@ -266,11 +280,11 @@ SMGS_HD inline SoftGrad<V> softmax_bwd(const SoftFwd<V>& f, V T, V A, V dp, V pp
   V g_bpast = zero;
   // m = 2U / Q (no gradient where m := 1), Q = b_past + b_cur + √D, D = diff² + 4·b_cur·b_past·T0
   g_m = sel(f.exact, zero, g_m);
-  g_U = g_U + g_m * V(2.0f) / f.Q;
-  V g_Q = -(g_m * f.m / f.Q);
+  g_U = g_U + g_m * V(2.0f) * f.iQ;
+  V g_Q = -(g_m * f.m * f.iQ);
   g_bpast = g_bpast + g_Q;
   g_bcur = g_bcur + g_Q;
-  V g_D = sel(f.exact, zero, g_Q / (V(2.0f) * f.sq));
+  V g_D = sel(f.exact, zero, V(0.5f) * g_Q * vrcp(f.sq));
   g_bcur = g_bcur + g_D * (V(2.0f) * f.diff + V(4.0f) * f.b_past * f.T0);
   g_bpast = g_bpast + g_D * (V(4.0f) * f.b_cur * f.T0 - V(2.0f) * f.diff);
   g_T0 = g_T0 + g_D * V(4.0f) * f.b_cur * f.b_past;
@@ -288,8 +302,8 @@ SMGS_HD inline SoftGrad<V> softmax_bwd(const SoftFwd<V>& f, V T, V A, V dp, V pp
   g.d = g_dd;
   g.dp = -g_dd;
   // t_cur = h_cur·U / E, E = h_cur + X·T0
-  V g_hcU = g_tcur / f.E;
-  V g_E = -(g_tcur * f.t_cur / f.E);
+  V g_hcU = g_tcur * f.iE;
+  V g_E = -(g_tcur * f.t_cur * f.iE);
   V g_hcur = g_hcU * f.U;
   g_U = g_U + g_hcU * f.h_cur;
   g_hcur = g_hcur + g_E;
@@ -298,8 +312,8 @@ SMGS_HD inline SoftGrad<V> softmax_bwd(const SoftFwd<V>& f, V T, V A, V dp, V pp
   V g_hpast = zero;
   if (solved) g_hpast = g_X; else g_tpast = g_tpast + g_X;
   // t_past = h_past·U / S
-  V g_hpU = g_tpast / f.S;
-  g_S = g_S - g_tpast * f.t_past / f.S;
+  V g_hpU = g_tpast * f.iS;
+  g_S = g_S - g_tpast * f.t_past * f.iS;
   g_hpast = g_hpast + g_hpU * f.U;
   g_U = g_U + g_hpU * f.h_past;
   // S = h_past + h_cur

@@ -1,0 +1,203 @@
+"""Renderer throughput: forward and forward+backward from 3D parameters, per scene, mode and backend.
+
+    python bench/raster.py                      # the two benchmark scenes + random scenes, all modes
+    python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --repeats 9
+
+Everything is timed through ``smgs.raster.rasterize`` (EWA projection and SH in PyTorch, then the
+backend), loss = image mean, median over repeats after a warm-up. Columns: forward ms, forward +
+backward ms, splat-pixel pairs the backend evaluated per second (forward; pairs / fwd+bwd time),
+peak resident memory of a forward+backward above the resident set before it, and each mode's time
+relative to ``3dgs`` on the same scene and backend. The machine is shared: the load average is
+printed with the table, and ratios between modes are more stable than absolute times.
+
+Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
+scenes made by the same recipe at other sizes. The reference backend is dense (every splat at every
+pixel), so it only runs on scenes of at most ``--reference-max-pairs`` splat-pixel pairs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from smgs import Camera  # noqa: E402
+from smgs.metrics.timing import device_name, track_peak_memory  # noqa: E402
+from smgs.raster import MODES, backend_available, rasterize  # noqa: E402
+from smgs.raster.projection import project_gaussians  # noqa: E402
+
+SHARED = ROOT.parent / "shared" / "bench"
+FILE_SCENES = {"10k_256": "scene_10k_256.npz", "100k_512": "scene_100k_512.npz"}
+# name -> (N, width, height, seed)
+RANDOM_SCENES = {"rand_1k_64": (1_000, 64, 64, 1), "rand_3k_128": (3_000, 128, 128, 2),
+                 "rand_40k_1024x576": (40_000, 1024, 576, 3)}
+
+
+def random_scene(n: int, width: int, height: int, seed: int) -> dict[str, np.ndarray]:
+    """The recipe of ../shared/bench/README.md: Gaussians in the frustum of a pinhole camera at the
+    origin, z ~ U(2, 6), fx = fy = W, σ_px = 2·exp(N(0, 0.25²)) with per-axis jitter U(0.8, 1.25)
+    (3σ radius ≈ 7.6 px at any resolution), random unit quaternions, opacities U(0.3, 0.9), RGB U(0, 1)."""
+    rng = np.random.default_rng(seed)
+    fx = fy = float(width)
+    cx, cy = width / 2, height / 2
+    z = rng.uniform(2, 6, n)
+    u, v = rng.uniform(0, width, n), rng.uniform(0, height, n)
+    means = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], 1)
+    sig = 2 * np.exp(rng.normal(0, 0.25, n))[:, None] * rng.uniform(0.8, 1.25, (n, 3))
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return dict(means=means, scales=sig * z[:, None] / fx, quats_wxyz=q, opacities=rng.uniform(0.3, 0.9, n),
+                colors=rng.uniform(0, 1, (n, 3)), K=K, viewmat=np.eye(4), width=width, height=height)
+
+
+def load_scene(name: str) -> dict[str, np.ndarray]:
+    if name in FILE_SCENES:
+        path = SHARED / FILE_SCENES[name]
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    return random_scene(*RANDOM_SCENES[name])
+
+
+def to_inputs(sc: dict[str, np.ndarray], seed: int = 0) -> tuple[dict[str, torch.Tensor], Camera]:
+    """Float32 leaf tensors; α, β, γ drawn around typical trained values (α log-uniform in
+    [0.8, 1.25] so GEF images stay comparable, β ~ U(0, 10), γ ~ U(0, 2))."""
+    n = sc["means"].shape[0]
+    g = torch.Generator().manual_seed(seed)
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    p = dict(means3d=t(sc["means"]), quats=t(sc["quats_wxyz"]), scales=t(sc["scales"]),
+             opacities=t(sc["opacities"]).reshape(-1), colors=t(sc["colors"]),
+             alpha=torch.exp(math.log(1.25) * (2 * torch.rand(n, generator=g) - 1)),
+             beta=10 * torch.rand(n, generator=g), gamma=2 * torch.rand(n, generator=g))
+    cam = Camera(t(sc["K"]), t(sc["viewmat"]), int(sc["width"]), int(sc["height"]))
+    return p, cam
+
+
+def median_ms(fn, repeats: int, warmup: int) -> float:
+    for _ in range(warmup):
+        fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(ts)
+
+
+def _rss_bytes() -> int:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:
+        return 0
+
+
+def bench_one(params, cam, mode, backend, k_max, repeats, warmup):
+    leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+
+    def call(p):
+        return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
+                         alpha=p["alpha"], beta=p["beta"], gamma=p["gamma"], mode=mode, k_max=k_max,
+                         backend=backend)
+
+    def fwd():
+        with torch.no_grad():
+            return call(params)
+
+    def fwd_bwd():
+        for v in leaves.values():
+            v.grad = None
+        out = call(leaves)
+        out.rgb.mean().backward()
+        return out
+
+    out = fwd()
+    pairs = out.stats.pairs_evaluated
+    t_f = median_ms(fwd, repeats, warmup)
+    t_fb = median_ms(fwd_bwd, repeats, warmup)
+    base = _rss_bytes()
+    with track_peak_memory("cpu") as pm:
+        fwd_bwd()
+    peak = max(0, pm.bytes - base) if pm.kind == "cpu_peak_rss_vmhwm_reset" else float("nan")
+    return dict(fwd_ms=t_f, fb_ms=t_fb, pairs=pairs, peak_mib=peak / 2**20,
+                contrib=out.stats.contributions, within=out.stats.frac_within_kmax)
+
+
+def projection_ms(params, cam, repeats, warmup):
+    leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+
+    def f():
+        with torch.no_grad():
+            project_gaussians(params["means3d"], params["quats"], params["scales"], cam)
+
+    def fb():
+        pr = project_gaussians(leaves["means3d"], leaves["quats"], leaves["scales"], cam)
+        (pr.means2d.sum() + pr.conics.sum() + pr.depths.sum()).backward()
+
+    return median_ms(f, repeats, warmup), median_ms(fb, repeats, warmup)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=["10k_256", "100k_512", *RANDOM_SCENES])
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument("--backends", nargs="+", default=["cpu", "reference"])
+    ap.add_argument("--k-max", type=int, default=128)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--reference-max-pairs", type=float, default=5e6)
+    args = ap.parse_args(argv)
+
+    print(f"# smgs renderer benchmark: {device_name('cpu')}, torch {torch.__version__}, k_max {args.k_max}, "
+          f"median of {args.repeats} after {args.warmup} warm-up")
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    rows, notes = [], []
+    for name in args.scenes:
+        params, cam = to_inputs(load_scene(name))
+        n = params["means3d"].shape[0]
+        pf, pfb = projection_ms(params, cam, args.repeats, args.warmup)
+        notes.append(f"{name}: projection alone {pf:.1f} ms forward, {pfb:.1f} ms forward+backward")
+        for backend in args.backends:
+            if not backend_available(backend, "cpu", torch.float32):
+                notes.append(f"{name}: backend {backend} unavailable here")
+                continue
+            if backend == "reference" and n * cam.width * cam.height > args.reference_max_pairs:
+                continue
+            reps = args.repeats if backend != "reference" else max(1, min(args.repeats, 3))
+            res = {}
+            for mode in args.modes:
+                res[mode] = bench_one(params, cam, mode, backend, args.k_max, reps, args.warmup)
+                print(f"  {name} {mode} {backend}: {res[mode]['fwd_ms']:.1f} / {res[mode]['fb_ms']:.1f} ms",
+                      file=sys.stderr, flush=True)
+            for mode, r in res.items():
+                b = res.get("3dgs")
+                rows.append((name, n, mode, backend, r, None if b is None else (r["fwd_ms"] / b["fwd_ms"],
+                                                                                 r["fb_ms"] / b["fb_ms"])))
+    print()
+    print("| scene | N | mode | backend | fwd ms | fwd+bwd ms | fwd Mpairs/s | f+b Mpairs/s | peak MiB (f+b) "
+          "| ×3dgs fwd | ×3dgs f+b | within k_max |")
+    print("|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, n, mode, backend, r, ratio in rows:
+        rf, rfb = ("–", "–") if ratio is None else (f"{ratio[0]:.2f}", f"{ratio[1]:.2f}")
+        print(f"| {name} | {n:,} | {mode} | {backend} | {r['fwd_ms']:.1f} | {r['fb_ms']:.1f} | "
+              f"{r['pairs'] / r['fwd_ms'] / 1e3:.0f} | {r['pairs'] / r['fb_ms'] / 1e3:.0f} | {r['peak_mib']:.0f} | "
+              f"{rf} | {rfb} | {r['within']:.2f} |")
+    print()
+    for s in notes:
+        print(f"- {s}")
+    print(f"- load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+if __name__ == "__main__":
+    main()
