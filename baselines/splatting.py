@@ -55,6 +55,18 @@ class GaussianSplatting:
     def num_gaussians(self) -> int:
         return len(self.trainer.gaussians)
 
+    @torch.no_grad()
+    def parameter_values(self) -> dict[str, torch.Tensor]:
+        """The learned α, β, γ (γ relative to the scene extent) that this mode uses, for the
+        report's diagnostics."""
+        g = self.trainer.gaussians
+        out = {}
+        if self.trainer.use_gef:
+            out["alpha"] = g.alpha
+        if self.trainer.use_softmax:
+            out["beta"], out["gamma"] = g.beta, g.gamma_rel
+        return out
+
     def describe(self) -> dict[str, Any]:
         return {"method": self.name, "config": to_dict(self.config), "hparams": self.config.optim.name,
                 "step": self.trainer.step_count, "plan": self.notes + self.trainer.plan}

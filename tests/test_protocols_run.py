@@ -129,6 +129,7 @@ def test_consistency_row_and_trajectory_recorded(tmp_path):
     assert json.loads((run / "trajectory.json").read_text())
     assert r.diagnostics["metrics_on_8bit"] is True
     assert r.lpips_net.endswith("3dgs-input")
+    assert set(r.diagnostics["params"]) == {"alpha", "beta", "gamma"}
 
 
 def test_smoke_experiment_end_to_end_with_report(tmp_path):
