@@ -125,7 +125,6 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     every = int(cfg.get("checkpoint_every") or 0)
     bar = tqdm(total=steps, initial=start, desc=f"{cfg['scene']}/{name}", unit="step", leave=False,
                position=1, dynamic_ncols=True)
-    last_psnr = float("nan")
     with track_peak_memory("cpu") as peak:
         for step in range(start, steps):
             with clock.training():
@@ -143,8 +142,13 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
                                                        "curve": [c.__dict__ for c in curve]})
             bar.update(1)
             if done % 10 == 0 or done == steps:
-                bar.set_postfix(loss=f"{logs.get('loss', float('nan')):.4f}", psnr=f"{last_psnr:.2f}",
-                                gs=method.num_gaussians())
+                # psnr: this step's training view; test: the last intermediate evaluation
+                post = {"loss": f"{logs.get('loss', float('nan')):.4f}"}
+                if "psnr" in logs:
+                    post["psnr"] = f"{logs['psnr']:.2f}"
+                if curve:
+                    post["test"] = f"{curve[-1].psnr:.2f}"
+                bar.set_postfix(post, gs=method.num_gaussians())
     bar.close()
     result.steps = steps
     result.train_seconds = clock.seconds
