@@ -16,7 +16,7 @@ import resource
 import statistics
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterator, Sequence
 
@@ -169,7 +169,7 @@ class TrainClock:
     excluded: dict[str, float] = field(default_factory=dict)
 
     @contextmanager
-    def training(self) -> Iterator[None]:
+    def _timed(self, sink: Callable[[float], None]) -> Iterator[None]:
         dev = torch.device(self.device)
         _sync(dev)
         t0 = time.perf_counter()
@@ -177,19 +177,19 @@ class TrainClock:
             yield
         finally:
             _sync(dev)
-            self.seconds += time.perf_counter() - t0
+            sink(time.perf_counter() - t0)
 
-    @contextmanager
-    def exclude(self, what: str) -> Iterator[None]:
+    def training(self) -> AbstractContextManager[None]:
+        """Time a block of training; it adds to ``seconds``."""
+        def add(dt: float) -> None:
+            self.seconds += dt
+        return self._timed(add)
+
+    def exclude(self, what: str) -> AbstractContextManager[None]:
         """Time a non-training phase (e.g. "eval") for the log; it never adds to ``seconds``."""
-        dev = torch.device(self.device)
-        _sync(dev)
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            _sync(dev)
-            self.excluded[what] = self.excluded.get(what, 0.0) + time.perf_counter() - t0
+        def add(dt: float) -> None:
+            self.excluded[what] = self.excluded.get(what, 0.0) + dt
+        return self._timed(add)
 
     def to_json(self) -> dict:
         return {"train_seconds": self.seconds, "excluded_seconds": dict(self.excluded),
