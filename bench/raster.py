@@ -104,7 +104,10 @@ def _rss_bytes() -> int:
 
 
 def bench_one(params, cam, mode, backend, k_max, repeats, warmup):
+    dev = torch.device("cuda" if backend == "cuda" else "cpu")
+    params = {k: v.to(dev) for k, v in params.items()}
     leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)  # time finished work
 
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
@@ -113,23 +116,27 @@ def bench_one(params, cam, mode, backend, k_max, repeats, warmup):
 
     def fwd():
         with torch.no_grad():
-            return call(params)
+            out = call(params)
+        sync()
+        return out
 
     def fwd_bwd():
         for v in leaves.values():
             v.grad = None
         out = call(leaves)
         out.rgb.mean().backward()
+        sync()
         return out
 
     out = fwd()
     pairs = out.stats.pairs_evaluated
     t_f = median_ms(fwd, repeats, warmup)
     t_fb = median_ms(fwd_bwd, repeats, warmup)
-    base = _rss_bytes()
-    with track_peak_memory("cpu") as pm:
+    base = _rss_bytes() if dev.type == "cpu" else 0   # cuda: peak allocated by torch
+    with track_peak_memory(dev) as pm:
         fwd_bwd()
-    peak = max(0, pm.bytes - base) if pm.kind == "cpu_peak_rss_vmhwm_reset" else float("nan")
+    peak = max(0, pm.bytes - base) if pm.kind in ("cpu_peak_rss_vmhwm_reset", "cuda_max_memory_allocated") \
+        else float("nan")
     return dict(fwd_ms=t_f, fb_ms=t_fb, pairs=pairs, peak_mib=peak / 2**20,
                 contrib=out.stats.contributions, within=out.stats.frac_within_kmax)
 
@@ -152,7 +159,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["10k_256", "100k_512", *RANDOM_SCENES])
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
-    ap.add_argument("--backends", nargs="+", default=["cpu", "reference"])
+    ap.add_argument("--backends", nargs="+", default=["cpu", "cuda", "reference"])
     ap.add_argument("--k-max", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=1)
@@ -169,7 +176,7 @@ def main(argv=None) -> None:
         pf, pfb = projection_ms(params, cam, args.repeats, args.warmup)
         notes.append(f"{name}: projection alone {pf:.1f} ms forward, {pfb:.1f} ms forward+backward")
         for backend in args.backends:
-            if not backend_available(backend, "cpu", torch.float32):
+            if not backend_available(backend, "cuda" if backend == "cuda" else "cpu", torch.float32):
                 notes.append(f"{name}: backend {backend} unavailable here")
                 continue
             if backend == "reference" and n * cam.width * cam.height > args.reference_max_pairs:
