@@ -18,6 +18,7 @@ from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
 _BACKENDS: dict[str, tuple[str, str]] = {
     "reference": ("smgs.raster.reference", "rasterize_splats_reference"),
     "cpu": ("smgs.raster.cpu", "rasterize_splats_cpu"),
+    "cuda": ("smgs.raster.cuda", "rasterize_splats_cuda"),
 }
 
 
@@ -42,6 +43,12 @@ def backend_available(name: str, device: torch.device | str = "cpu",
         except ImportError:
             return False
         return cpu.is_available()
+    if name == "cuda":
+        if device.type != "cuda" or dtype != torch.float32:
+            return False
+        from smgs.raster import cuda   # importing never touches CUDA
+
+        return cuda.is_available()
     return False
 
 
@@ -54,7 +61,7 @@ def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype
             raise RuntimeError(f"renderer backend {backend!r} cannot render {dtype} tensors on "
                                f"{torch.device(device)}; use backend='auto' or 'reference'")
         return backend
-    for name in ("cpu",):
+    for name in ("cuda", "cpu"):
         if backend_available(name, device, dtype):
             return name
     return "reference"
