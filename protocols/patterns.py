@@ -17,98 +17,28 @@ on the 8-bit render, the train time, and the paper's value. Writes, in ``--out``
 * ``renders/``: the final render of every cell (PNG).
 
 ``--set key=value`` overrides the training config (dot paths into ``TrainConfig``, e.g.
-``--set gaussians.beta.init=5``); overrides are recorded with each row.
+``--set gaussians.beta.init=5``); overrides are recorded with each row. The paper's values come
+from reports/paper_tables/table1_patterns.csv (the copy reports/ uses).
+
+Two processes can share the grid (e.g. split by pattern, separate ``--out`` directories); then
+
+    python -m protocols.patterns --merge runs/t1_a runs/t1_b --out runs/table1
+
+merges their cells.csv into ``--out`` (a cell done in several keeps its first ok row) and writes
+the tables without training; ``--table-only`` rewrites the tables of ``--out`` alone.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import io
 import json
-import math
 import statistics
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
-
-PAPER_TABLE1 = """pattern,method,n_gaussians,psnr
-circle4,3dgs,4,18.07
-circle4,3dgs,16,22.16
-circle4,3dgs,64,28.16
-circle4,3dgs,256,36.47
-circle4,3dgs,1024,45.00
-circle4,3dgs,4096,44.98
-circle4,gef_only,4,23.93
-circle4,gef_only,16,30.91
-circle4,gef_only,64,42.11
-circle4,gef_only,256,48.17
-circle4,gef_only,1024,48.53
-circle4,gef_only,4096,49.91
-circle4,softmax_only,4,19.55
-circle4,softmax_only,16,23.57
-circle4,softmax_only,64,29.64
-circle4,softmax_only,256,38.40
-circle4,softmax_only,1024,47.38
-circle4,softmax_only,4096,48.98
-circle4,softmax_gs,4,28.91
-circle4,softmax_gs,16,32.51
-circle4,softmax_gs,64,42.27
-circle4,softmax_gs,256,49.14
-circle4,softmax_gs,1024,50.18
-circle4,softmax_gs,4096,51.93
-rect4,3dgs,4,20.37
-rect4,3dgs,16,23.79
-rect4,3dgs,64,30.51
-rect4,3dgs,256,41.54
-rect4,3dgs,1024,53.04
-rect4,3dgs,4096,59.91
-rect4,gef_only,4,23.64
-rect4,gef_only,16,29.32
-rect4,gef_only,64,46.72
-rect4,gef_only,256,53.76
-rect4,gef_only,1024,57.24
-rect4,gef_only,4096,59.38
-rect4,softmax_only,4,21.05
-rect4,softmax_only,16,24.98
-rect4,softmax_only,64,30.28
-rect4,softmax_only,256,44.08
-rect4,softmax_only,1024,53.58
-rect4,softmax_only,4096,59.03
-rect4,softmax_gs,4,24.66
-rect4,softmax_gs,16,30.29
-rect4,softmax_gs,64,50.16
-rect4,softmax_gs,256,54.97
-rect4,softmax_gs,1024,57.95
-rect4,softmax_gs,4096,60.06
-oval4,3dgs,4,19.96
-oval4,3dgs,16,22.28
-oval4,3dgs,64,27.61
-oval4,3dgs,256,35.61
-oval4,3dgs,1024,44.69
-oval4,3dgs,4096,49.21
-oval4,gef_only,4,24.88
-oval4,gef_only,16,28.77
-oval4,gef_only,64,38.49
-oval4,gef_only,256,46.48
-oval4,gef_only,1024,48.10
-oval4,gef_only,4096,50.22
-oval4,softmax_only,4,20.17
-oval4,softmax_only,16,22.34
-oval4,softmax_only,64,27.50
-oval4,softmax_only,256,36.43
-oval4,softmax_only,1024,44.39
-oval4,softmax_only,4096,49.65
-oval4,softmax_gs,4,32.51
-oval4,softmax_gs,16,33.82
-oval4,softmax_gs,64,41.42
-oval4,softmax_gs,256,46.72
-oval4,softmax_gs,1024,48.70
-oval4,softmax_gs,4096,50.37
-"""
-"""Softmax-GS paper, Table 1 (PSNR, 10K steps); also shared/reference/paper_tables/table1_patterns.csv."""
 
 METHOD_ORDER = ("softmax_gs", "gef_only", "softmax_only", "3dgs")
 CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "status", "psnr", "psnr_8bit",
@@ -117,8 +47,11 @@ CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "sta
 
 
 def paper_table1() -> dict[tuple[str, str, int], float]:
-    rows = csv.DictReader(io.StringIO(PAPER_TABLE1))
-    return {(r["pattern"], r["method"], int(r["n_gaussians"])): float(r["psnr"]) for r in rows}
+    """The paper's Table 1, (pattern, method, count) -> PSNR, from the CSV that reports/ also
+    reads (reports/paper_tables/table1_patterns.csv); empty if it cannot be read."""
+    from reports.paper import load_paper
+
+    return dict(load_paper().table1)
 
 
 def _parse_value(text: str) -> Any:
@@ -210,6 +143,25 @@ def _append(path: Path, row: dict) -> None:
             w.writeheader()
         w.writerow({k: row.get(k) for k in CELL_FIELDS})
         f.flush()
+
+
+def merge_cells(sources: list[Path], out: Path) -> list[dict]:
+    """Union of the cells.csv files in ``sources`` and ``out`` into ``out``/cells.csv: one row per
+    cell, an ok row before a failed one, else the first seen."""
+    merged: dict[tuple, dict] = {}
+    for path in [out / "cells.csv", *(Path(d) / "cells.csv" for d in sources)]:
+        for r in read_cells(path):
+            k = _key(r)
+            if k not in merged or (merged[k]["status"] != "ok" and r["status"] == "ok"):
+                merged[k] = r
+    rows = list(merged.values())
+    tmp = out / "cells.csv.tmp"
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CELL_FIELDS)
+        w.writeheader()
+        w.writerows({k: r.get(k) for k in CELL_FIELDS} for r in rows)
+    tmp.replace(out / "cells.csv")
+    return rows
 
 
 def summarise(rows: list[dict]) -> list[dict]:
@@ -310,7 +262,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--no-renders", action="store_true")
     ap.add_argument("--write-targets", metavar="DIR", help="also save the target PNGs there")
+    ap.add_argument("--merge", nargs="+", metavar="DIR", help="merge these runs' cells.csv into --out "
+                    "and write the tables (no training)")
+    ap.add_argument("--table-only", action="store_true", help="rewrite the tables of --out (no training)")
     args = ap.parse_args(argv)
+    out = Path(args.out)
+    if args.merge or args.table_only:
+        out.mkdir(parents=True, exist_ok=True)
+        rows = merge_cells([Path(d) for d in args.merge], out) if args.merge else read_cells(out / "cells.csv")
+        csv_path, md_path = write_tables(out, rows)
+        print(f"{len(rows)} cell(s) -> {csv_path} and {md_path}")
+        return 0
 
     from baselines import list_methods
 
@@ -318,7 +280,6 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown method(s) {unknown}; registered: {', '.join(list_methods())}")
     torch.set_num_threads(args.threads)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.write_targets:
         from smgs.data.patterns import write_targets

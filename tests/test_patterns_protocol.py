@@ -5,17 +5,14 @@ from pathlib import Path
 
 import pytest
 
-from protocols.patterns import PAPER_TABLE1, apply_overrides, main, ordering_checks, paper_table1, read_cells
-
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference" / "paper_tables" / "table1_patterns.csv"
+from protocols.patterns import apply_overrides, main, ordering_checks, paper_table1, read_cells
 
 
-def test_embedded_paper_values():
+def test_paper_values_from_the_reports_csv():
     t = paper_table1()
     assert len(t) == 3 * 4 * 6
     assert t[("circle4", "softmax_gs", 4)] == 28.91 and t[("rect4", "3dgs", 4096)] == 59.91
-    if SHARED.exists():
-        assert SHARED.read_text().strip() == PAPER_TABLE1.strip()
+    assert t[("oval4", "gef_only", 16)] == 28.77
 
 
 def test_overrides():
@@ -45,6 +42,18 @@ def test_grid_writes_cells_tables_and_resumes(tmp_path, capsys):
     main(args)                                   # everything done: nothing re-runs
     assert "0 cell(s) to run" in capsys.readouterr().out
     assert len(read_cells(tmp_path / "cells.csv")) == 8
+
+
+def test_two_runs_merge(tmp_path, capsys):
+    common = ["--methods", "3dgs", "--counts", "4", "--seeds", "0", "--steps", "2", "--size", "12", "--no-renders"]
+    main(["--patterns", "circle4", *common, "--out", str(tmp_path / "a")])
+    main(["--patterns", "rect4", *common, "--out", str(tmp_path / "b")])
+    main(["--merge", str(tmp_path / "a"), str(tmp_path / "b"), str(tmp_path / "a"), "--out", str(tmp_path / "m")])
+    rows = read_cells(tmp_path / "m" / "cells.csv")
+    assert sorted(r["pattern"] for r in rows) == ["circle4", "rect4"]
+    with (tmp_path / "m" / "table1.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == 2
+    assert "## rect4" in (tmp_path / "m" / "table1.md").read_text()
 
 
 def test_ordering_check():
