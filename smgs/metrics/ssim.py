@@ -12,11 +12,23 @@ C1 = 0.01**2
 C2 = 0.03**2
 
 
-def gaussian_window(size: int = WINDOW, sigma: float = SIGMA, dtype=torch.float32, device=None) -> torch.Tensor:
+def gaussian_kernel_1d(size: int = WINDOW, sigma: float = SIGMA) -> torch.Tensor:
+    """The normalised 1D Gaussian [size] (float64) whose outer product is the window."""
     x = torch.arange(size, dtype=torch.float64) - size // 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = g / g.sum()
+    return g / g.sum()
+
+
+def gaussian_window(size: int = WINDOW, sigma: float = SIGMA, dtype=torch.float32, device=None) -> torch.Tensor:
+    g = gaussian_kernel_1d(size, sigma)
     return (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
+
+
+def ssim_from_stats(mu1: torch.Tensor, mu2: torch.Tensor, s1: torch.Tensor, s2: torch.Tensor,
+                    s12: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(A1, A2, B1, B2) of the SSIM map A1·A2 / (B1·B2) from the local means, variances and
+    covariance: A1 = 2μ1μ2 + C1, A2 = 2σ12 + C2, B1 = μ1² + μ2² + C1, B2 = σ1² + σ2² + C2."""
+    return 2 * (mu1 * mu2) + C1, 2 * s12 + C2, mu1 * mu1 + mu2 * mu2 + C1, s1 + s2 + C2
 
 
 def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
@@ -28,11 +40,11 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     w = gaussian_window(dtype=img1.dtype, device=img1.device).expand(ch, 1, WINDOW, WINDOW)
     conv = lambda x: F.conv2d(x, w, padding=WINDOW // 2, groups=ch)  # noqa: E731
     mu1, mu2 = conv(img1), conv(img2)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1 = conv(img1 * img1) - mu1_sq
-    s2 = conv(img2 * img2) - mu2_sq
-    s12 = conv(img1 * img2) - mu12
-    m = ((2 * mu12 + C1) * (2 * s12 + C2)) / ((mu1_sq + mu2_sq + C1) * (s1 + s2 + C2))
+    s1 = conv(img1 * img1) - mu1 * mu1
+    s2 = conv(img2 * img2) - mu2 * mu2
+    s12 = conv(img1 * img2) - mu1 * mu2
+    a1, a2, b1, b2 = ssim_from_stats(mu1, mu2, s1, s2, s12)
+    m = (a1 * a2) / (b1 * b2)
     return m[0].permute(1, 2, 0) if hwc else m
 
 

@@ -1,11 +1,11 @@
 """Training loss: (1 − λ)·L1 + λ·(1 − SSIM) and the per-ray variance regulariser of β and γ.
 
-SSIM here is the 3DGS SSIM of ``smgs.metrics.ssim`` (11×11 Gaussian window, σ 1.5, zero
-padding, mean of the map) computed faster for training: the separable window is applied as two
-banded matrix products (the 11×11 depthwise conv2d costs ~5-10 ms forward+backward at 128² on one
-core, more than everything else in a 4-Gaussian step), the backward is analytic (the blur's
-adjoint is the transposed band products), and the target's statistics are computed once per
-image. Tests check it against ``smgs.metrics.ssim`` in value and gradient.
+SSIM here is the 3DGS SSIM of ``smgs.metrics.ssim`` (same window, constants and formula, imported
+from there) computed faster for training: the separable window is applied as two banded matrix
+products (the 11×11 depthwise conv2d costs ~5-10 ms forward+backward at 128² on one core; the band
+products ~0.5 ms per blur of 9 channels), the backward is analytic (the window is symmetric, so
+the blur is its own adjoint), and the target's statistics are computed once per image. Tests
+check it against ``smgs.metrics.ssim`` in value and gradient.
 """
 
 from __future__ import annotations
@@ -13,16 +13,16 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 
-from smgs.metrics.ssim import C1, C2, SIGMA, WINDOW
+from smgs.metrics.ssim import WINDOW, gaussian_kernel_1d, ssim_from_stats
 
 
 def _band(n: int, dtype: torch.dtype, device) -> torch.Tensor:
-    """[n, n] matrix M with (M @ x)[i] = Σ_k g[k]·x[i + k − r] (zero padding): the 1D window."""
+    """[n, n] matrix M with (M @ x)[i] = Σ_k g[k]·x[i + k − r] (zero padding): the 1D window.
+    Symmetric, since the window is."""
     r = WINDOW // 2
-    x = torch.arange(WINDOW, dtype=torch.float64) - r
-    g = torch.exp(-x * x / (2 * SIGMA * SIGMA))
-    g = g / g.sum()
+    g = gaussian_kernel_1d()
     i = torch.arange(n)
     off = i[None, :] - i[:, None] + r                     # j − i + r
     ok = (off >= 0) & (off < WINDOW)
@@ -37,21 +37,16 @@ def _blur(s: torch.Tensor, bv: torch.Tensor, bh: torch.Tensor) -> torch.Tensor:
 
 class _SSIM(torch.autograd.Function):
     """Mean SSIM of x [C, H, W] against a fixed target, with an analytic backward: the map is
-    A1·A2/(B1·B2) with A1 = 2μxμy + C1, A2 = 2σxy + C2, B1 = μx² + μy² + C1, B2 = σx² + σy² + C2;
-    its derivatives w.r.t. the blurred statistics (μx, E[x²], E[xy]) go back through the adjoint
-    blur (the transposed band matrices) to x. Far fewer kernel launches than autograd's graph."""
+    A1·A2/(B1·B2) (``ssim_from_stats``); its derivatives w.r.t. the blurred statistics (μx, E[x²],
+    E[xy]) go back through the blur (its own adjoint: symmetric bands) to x. Far fewer tensor ops
+    than autograd's graph."""
 
     @staticmethod
     def forward(ctx, x, y, mu2, s2, bv, bh):  # type: ignore[override]
         c = x.shape[0]
         st = _blur(torch.cat([x, x * x, x * y], 0), bv, bh)
         mu1, e11, e12 = st[:c], st[c:2 * c], st[2 * c:]
-        mu12 = mu1 * mu2
-        mu1_sq = mu1 * mu1
-        a1 = 2 * mu12 + C1
-        a2 = 2 * (e12 - mu12) + C2
-        b1 = mu1_sq + mu2 * mu2 + C1
-        b2 = (e11 - mu1_sq) + s2 + C2
+        a1, a2, b1, b2 = ssim_from_stats(mu1, mu2, e11 - mu1 * mu1, s2, e12 - mu1 * mu2)
         den = b1 * b2
         m = a1 * a2 / den
         ctx.save_for_backward(x, y, mu1, mu2, a1, a2, b1, b2, den, m, bv, bh)
@@ -60,16 +55,22 @@ class _SSIM(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):  # type: ignore[override]
         x, y, mu1, mu2, a1, a2, b1, b2, den, m, bv, bh = ctx.saved_tensors
-        g = g / m.numel()
-        d_a1 = g * a2 / den
-        d_a2 = g * a1 / den
-        d_b1 = -g * m / b1
-        d_b2 = -g * m / b2
-        # μx enters a1 and b1 directly, and a2 = 2(E[xy] − μxμy) + C2, b2 = E[x²] − μx² + ...
-        d_mu1 = 2 * ((d_a1 - d_a2) * mu2 + (d_b1 - d_b2) * mu1)
-        d = _blur(torch.cat([d_mu1, d_b2, 2 * d_a2], 0), bv.T, bh.T)
         c = x.shape[0]
-        dx = d[:c] + 2 * x * d[c:2 * c] + y * d[2 * c:]
+        gs = g / m.numel()
+        q = gs / den
+        d_a1 = a2 * q
+        d_a2 = a1 * q
+        gm = m * gs
+        d_b1 = gm / b1
+        d_b2 = gm / b2                    # dL/dB = −d_b
+        # μx enters A1 = 2μxμy + C1 and B1 = μx² + ...; and A2 = 2(E[xy] − μxμy) + C2,
+        # B2 = E[x²] − μx² + ...: dL/dE[x²] = −d_b2, dL/dE[xy] = 2·d_a2
+        d = torch.empty((3 * c,) + x.shape[1:], dtype=x.dtype, device=x.device)
+        torch.mul(((d_a1 - d_a2) * mu2).sub_((d_b1 - d_b2).mul_(mu1)), 2, out=d[:c])
+        torch.neg(d_b2, out=d[c:2 * c])
+        torch.mul(d_a2, 2, out=d[2 * c:])
+        d = _blur(d, bv, bh)
+        dx = torch.addcmul(d[:c], x, d[c:2 * c], value=2).addcmul_(y, d[2 * c:])
         return dx, None, None, None, None, None
 
 
@@ -114,22 +115,20 @@ class SSIMLoss:
 def ray_variance(reg: torch.Tensor) -> torch.Tensor:
     """Per-ray weighted variances from the renderer's ``reg`` sums [H, W, 1 + 2R]
     (Σw, Σw·v_r, Σw·v_r²): Var_r = Σw v²/Σw − (Σw v/Σw)² per pixel, averaged over the pixels
-    with Σw > 0. Returns [R] (zeros if no pixel is covered)."""
+    with Σw > 0. Returns [R] (zeros if no pixel is covered). Masked arithmetic rather than a
+    boolean gather: no data-dependent shapes, and the backward writes no scatter."""
     r = (reg.shape[-1] - 1) // 2
     flat = reg.reshape(-1, reg.shape[-1])
-    sw = flat[:, 0]
+    sw = flat[:, :1]
     hit = sw > 0
-    if not bool(hit.any()):
-        return flat.new_zeros(r)
-    f = flat[hit]
-    sw = f[:, :1]
-    mean = f[:, 1:1 + r] / sw
-    var = f[:, 1 + r:] / sw - mean * mean
-    return var.clamp_min(0.0).mean(0)
+    safe = torch.where(hit, sw, torch.ones((), dtype=sw.dtype))
+    mean = flat[:, 1:1 + r] / safe
+    var = (flat[:, 1 + r:] / safe - mean * mean).clamp_min(0.0) * hit
+    return var.sum(0) / hit.sum().clamp_min(1)
 
 
 def l1(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    return (x - y).abs().mean()
+    return F.l1_loss(x, y)
 
 
 def psnr(x: torch.Tensor, y: torch.Tensor) -> float:
