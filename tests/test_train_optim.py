@@ -76,3 +76,23 @@ def test_append_keep_reset_keep_adam_moments_aligned():
     old = g.params["means"].detach().clone()
     opt.step()
     assert not torch.equal(old, g.params["means"].detach())
+
+
+def test_step_matches_torch_adam_per_group():
+    """All groups in one foreach update = torch's Adam group by group, including a group that
+    has no gradient on some steps (its state and step count stay put)."""
+    g, opt = _setup(n=5)
+    ref_params = {n: g.params[n].detach().clone().requires_grad_(True) for n in opt.names}
+    ref = torch.optim.Adam([{"params": [ref_params[n]], "lr": opt.lr(n)} for n in opt.names],
+                           betas=opt.cfg.betas, eps=opt.cfg.eps)
+    gen = torch.Generator().manual_seed(3)
+    for it in range(6):
+        for n in opt.names:
+            grad = None if (n == "shN" and it % 2 == 0) else torch.randn(g.params[n].shape, generator=gen)
+            g.params[n].grad = grad
+            ref_params[n].grad = None if grad is None else grad.clone()
+        opt.step()
+        ref.step()
+        for n in opt.names:
+            torch.testing.assert_close(g.params[n].detach(), ref_params[n].detach(), rtol=1e-6, atol=1e-7)
+    assert float(opt.opt.state[g.params["shN"]]["step"]) == 3 and float(opt.opt.state[g.params["means"]]["step"]) == 6

@@ -42,7 +42,8 @@ def group_lrs(cfg: OptimConfig, extent: float) -> dict[str, float]:
 
 
 class GaussianOptimizer:
-    """torch Adam over the Gaussians' raw parameters, one group per name in ``PARAM_NAMES``.
+    """Adam over the Gaussians' raw parameters, one group per name in ``PARAM_NAMES`` (a torch
+    ``Adam`` holds the groups and state; ``step`` updates all groups at once).
 
     ``trainable`` leaves out groups a mode does not use (α in 3dgs/softmax_only, β and γ in
     3dgs/gef_only), so they never move and cost no optimiser work.
@@ -58,7 +59,7 @@ class GaussianOptimizer:
         lrs = group_lrs(cfg, extent)
         self.opt = torch.optim.Adam(
             [{"params": [gaussians.params[n]], "lr": lrs[n], "name": n} for n in self.names],
-            lr=0.0, betas=cfg.betas, eps=cfg.eps, fused=True)   # fused: ~5x less per-step overhead on CPU
+            lr=0.0, betas=cfg.betas, eps=cfg.eps)   # holds groups, lrs and state; ``step`` is ours
         self._group = {g["name"]: g for g in self.opt.param_groups}
 
     # -- stepping ----------------------------------------------------------------------------
@@ -73,8 +74,44 @@ class GaussianOptimizer:
     def lr(self, name: str) -> float:
         return float(self._group[name]["lr"])
 
+    @torch.no_grad()
     def step(self) -> None:
-        self.opt.step()
+        """One Adam step of every group with a gradient (groups without one, e.g. higher SH
+        before their degree is active, keep their state, as torch's Adam does).
+
+        torch's Adam steps one group at a time (with ``fused=True``, one kernel per group); here
+        all groups go through one ``torch._foreach_*`` call per stage with a per-tensor step size,
+        ~8× fewer ops. Same update as torch's: m ← β1·m + (1 − β1)·g, v ← β2·v + (1 − β2)·g²,
+        p ← p − lr/(1 − β1ᵗ) · m / (√v / √(1 − β2ᵗ) + eps); state kept in ``self.opt.state``
+        in torch's layout (step, exp_avg, exp_avg_sq)."""
+        params, grads, m1, m2, steps, lrs = [], [], [], [], [], []
+        for name in self.names:
+            p = self.g.params[name]
+            if p.grad is None:
+                continue
+            st = self.opt.state[p]
+            if not st:
+                st["step"] = torch.tensor(0.0)
+                st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            params.append(p)
+            grads.append(p.grad)
+            m1.append(st["exp_avg"])
+            m2.append(st["exp_avg_sq"])
+            steps.append(st["step"])
+            lrs.append(self._group[name]["lr"])
+        if not params:
+            return
+        b1, b2 = self.cfg.betas
+        torch._foreach_add_(steps, 1.0)
+        torch._foreach_lerp_(m1, grads, 1 - b1)
+        torch._foreach_mul_(m2, b2)
+        torch._foreach_addcmul_(m2, grads, grads, 1 - b2)
+        t = [float(s) for s in steps]
+        denom = torch._foreach_sqrt(m2)
+        torch._foreach_div_(denom, [math.sqrt(1 - b2 ** k) for k in t])
+        torch._foreach_add_(denom, self.cfg.eps)
+        torch._foreach_addcdiv_(params, m1, denom, [-lr / (1 - b1 ** k) for lr, k in zip(lrs, t)])
 
     def zero_grad(self) -> None:
         for n in PARAM_NAMES:
