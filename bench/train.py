@@ -17,12 +17,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from smgs.camera import Camera
-from smgs.data.scene import Scene, View, camera_extent
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:       # `python bench/train.py` from a checkout
+    sys.path.insert(0, str(ROOT))
+
+from smgs.camera import Camera  # noqa: E402
+from smgs.data.scene import Scene, View, camera_extent  # noqa: E402
 
 
 def procedural_scene(size: int = 96, n_views: int = 4) -> Scene:

@@ -66,6 +66,15 @@ class DefaultStrategy:
     def active(self, iteration: int) -> bool:
         return self.cfg.enabled and iteration < self.cfg.refine_stop
 
+    def wants_stats(self, n: int) -> bool:
+        """Whether this step's screen-space statistics can change a refinement. Not when ``n``
+        Gaussians already fill the cap and no opacity reset (hence no screen-size pruning) is
+        configured: the count only changes at refinements, which then have no room to grow and
+        zero the statistics afterwards, so they would be discarded unread (the Table 1 fits
+        spend their whole run so). ``RefineEvent.capped`` then reports 0."""
+        c = self.cfg
+        return c.cap is None or n < c.cap or c.reset_every is not None
+
     # -- per step ----------------------------------------------------------------------------
     @torch.no_grad()
     def accumulate(self, n: int, ids: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor,

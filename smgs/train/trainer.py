@@ -13,11 +13,13 @@ import time
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.raster import RenderOutput, mode_flags, rasterize
-from smgs.raster.sh import num_sh_bases
+from smgs.raster.sh import eval_sh, num_sh_bases
+from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
 from smgs.train.loss import SSIMLoss, l1, ray_variance
@@ -55,6 +57,7 @@ class Trainer:
 
     def __init__(self, scene: Scene, cfg: TrainConfig) -> None:
         mode_flags(cfg.mode)  # validates the mode
+        keep_freed_buffers()  # per-step image temporaries reuse heap pages (see smgs.train.allocator)
         self.scene = scene
         self.cfg = cfg
         self.extent = float(scene.extent)
@@ -144,7 +147,11 @@ class Trainer:
                background: torch.Tensor | None = None) -> RenderOutput:
         g = self.gaussians
         deg = self.sh_degree() if sh_degree is None else sh_degree
-        sh = g.params["sh0"] if deg == 0 else g.sh[:, :num_sh_bases(deg)]
+        if deg == 0:    # view-independent: colours directly (the renderer skips the view directions)
+            colors = eval_sh(0, g.params["sh0"], None) + 0.5
+            sh, deg_arg = (colors.clamp_min(0.0) if self.cfg.gaussians.clamp_colors else colors), None
+        else:
+            sh, deg_arg = g.sh[:, :num_sh_bases(deg)], deg
         if background is None:
             background = self.scene.background
         return rasterize(
@@ -152,8 +159,8 @@ class Trainer:
             alpha=g.alpha if self.use_gef else None,
             beta=g.beta if self.use_softmax else None,
             gamma=g.gamma if self.use_softmax else None,
-            mode=self.cfg.mode, k_max=self.cfg.k_max, sh_degree=deg, background=background,
-            backend=self.cfg.backend, eq15=self.cfg.eq15,
+            mode=self.cfg.mode, k_max=self.cfg.k_max, sh_degree=deg_arg, background=background,
+            backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
             clamp_sh_colors=self.cfg.gaussians.clamp_colors)
 
@@ -195,8 +202,9 @@ class Trainer:
             bg = torch.rand(3, generator=self.gen)
         out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
         track = self.strategy.active(it)
+        stats = track and self.strategy.wants_stats(len(g))
         means2d = out.extras["means2d"]
-        if track and means2d.requires_grad:
+        if stats and means2d.requires_grad:
             means2d.retain_grad()
         t1 = time.perf_counter()
         rgb = out.rgb
@@ -222,8 +230,9 @@ class Trainer:
         t4 = time.perf_counter()
         ev = None
         if track:
-            self.strategy.accumulate(len(g), out.extras["ids"], means2d.grad, out.extras["radii"],
-                                     view.camera.width, view.camera.height)
+            if stats:
+                self.strategy.accumulate(len(g), out.extras["ids"], means2d.grad, out.extras["radii"],
+                                         view.camera.width, view.camera.height)
             ev = self.strategy.step(it, g, self.optimizer)
         self.optimizer.zero_grad()
         t5 = time.perf_counter()
@@ -232,8 +241,7 @@ class Trainer:
                             ("strategy", t4, t5)):
                 self.timings[k] += b - a
         self.step_count += 1
-        with torch.no_grad():
-            mse = float(((rgb.detach() - target) ** 2).mean())
+        mse = float(F.mse_loss(rgb.detach(), target))
         logs = {"loss": loss_v, "l1": float(l1v.detach()), "ssim": float(ssim_v.detach()),
                 "psnr": -10 * math.log10(mse) if mse > 0 else math.inf,
                 "num_gaussians": float(len(g)), "lr_means": lr}
