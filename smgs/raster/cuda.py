@@ -76,6 +76,7 @@ def _load():
         if _ext is not None or _error is not None:
             return _ext
         _error = _why_not_buildable()
+        expected = _error is not None   # no CUDA here: not worth a warning
         if _error is None:
             try:
                 from torch.utils.cpp_extension import load, verify_ninja_availability
@@ -88,7 +89,7 @@ def _load():
             except Exception as exc:  # noqa: BLE001 - any build failure means "not available"
                 _error = f"{type(exc).__name__}: {str(exc).strip()[-2000:]}"
         if _error is not None:
-            log.info("smgs cuda renderer backend unavailable: %s", _error)
+            log.log(logging.INFO if expected else logging.WARNING, "smgs cuda renderer backend unavailable: %s", _error)
     return _ext
 
 
