@@ -182,6 +182,36 @@ def test_cuda_float32_close_to_reference_float64(mode):
     assert_same(oc, gc, o64, g64, OUT_ATOL64, GRAD_RTOL64)
 
 
+@pytest.mark.parametrize("mode", ["3dgs", "softmax_gs"])
+def test_cuda_t_min_variant_matches_reference(mode):
+    """A transmittance threshold other than 1e-4 is compiled into a variant build."""
+    import inspect
+
+    from smgs.raster import cuda
+    from smgs.raster.reference import rasterize_splats_reference
+
+    if "t_min" not in inspect.signature(rasterize_splats_reference).parameters or BACKEND != "cuda":
+        pytest.skip("the reference has no t_min option")
+    sc = random_scene(300, 40, 30, seed=6)
+
+    def run(fn, device):
+        ins = {k: sc[k].to(device).clone().requires_grad_(True) for k in KEYS}
+        out = fn(*[ins[k] for k in KEYS], 40, 30, mode=mode, k_max=4, t_min=0.05)
+        wr = torch.linspace(0, 1, out.rgb.numel(), device=device).reshape(out.rgb.shape)
+        ((out.rgb * wr).sum() + out.alpha.sum()).backward()
+        return out, {k: None if t.grad is None else t.grad.cpu() for k, t in ins.items()}
+
+    oc, gc = run(cuda.rasterize_splats_cuda, DEV)
+    orf, gr = run(rasterize_splats_reference, "cpu")
+    assert 0.9 < orf.alpha.max() <= 0.95 + 1e-5   # pixels stopped at T >= t_min = 0.05
+    torch.testing.assert_close(oc.alpha.cpu(), orf.alpha, rtol=0, atol=2 * OUT_ATOL32)
+    torch.testing.assert_close(oc.rgb.cpu(), orf.rgb, rtol=0, atol=2 * OUT_ATOL32)
+    assert torch.equal(oc.stats.n_contrib.cpu(), orf.stats.n_contrib)
+    for k, v in gr.items():
+        if v is not None:
+            assert (gc[k] - v).abs().max().item() <= 2 * GRAD_RTOL32 * (v.abs().max().item() + 1e-8), k
+
+
 def test_backward_in_chunks_of_tiles_gives_the_same_gradients(monkeypatch):
     """A head-scratch budget of one tile makes the backward run tile by tile."""
     if BACKEND != "cuda":

@@ -42,6 +42,7 @@ HEAD_BUDGET_BYTES = 512 * 2**20
 _lock = threading.Lock()
 _ext = None
 _error: str | None = None
+_variants: dict[float, object] = {}   # t_min -> a build with -DSMGS_T_MIN (t_min != K.T_MIN)
 
 
 def _why_not_buildable() -> str | None:
@@ -67,6 +68,14 @@ def _arch_tag() -> str:
     return "_".join(caps)
 
 
+def _build(suffix: str = "", defines: tuple[str, ...] = ()):
+    from torch.utils.cpp_extension import load
+
+    return load(name=f"smgs_raster_cuda_sm{_arch_tag()}{suffix}", sources=[str(_CSRC / s) for s in SOURCES],
+                extra_include_paths=[str(_CSRC)], extra_cflags=CFLAGS + list(defines),
+                extra_cuda_cflags=CUDA_CFLAGS + list(defines), verbose=False)
+
+
 def _load():
     """Build (first time) and load the extension; None with the reason logged if it cannot be."""
     global _ext, _error
@@ -82,10 +91,7 @@ def _load():
                 from torch.utils.cpp_extension import load, verify_ninja_availability
 
                 verify_ninja_availability()
-                _ext = load(name=f"smgs_raster_cuda_sm{_arch_tag()}",
-                            sources=[str(_CSRC / s) for s in SOURCES],
-                            extra_include_paths=[str(_CSRC)],
-                            extra_cflags=CFLAGS, extra_cuda_cflags=CUDA_CFLAGS, verbose=False)
+                _ext = _build()
             except Exception as exc:  # noqa: BLE001 - any build failure means "not available"
                 _error = f"{type(exc).__name__}: {str(exc).strip()[-2000:]}"
         if _error is not None:
@@ -107,12 +113,20 @@ def unavailable_reason() -> str | None:
     return _error
 
 
-def extension():
-    """The loaded extension module (builds it if needed); raises if it cannot be built."""
+def extension(t_min: float = K.T_MIN):
+    """The loaded extension module (builds it if needed); raises if it cannot be built. A ``t_min``
+    other than the default is compiled in (``-DSMGS_T_MIN``, as the CPU backend does): one more
+    build per value, cached like the default one."""
     ext = _load()
     if ext is None:
         raise RuntimeError(f"smgs cuda renderer backend unavailable: {_error}")
-    return ext
+    if t_min == K.T_MIN:
+        return ext
+    with _lock:
+        if t_min not in _variants:
+            tag = f"{t_min:.3e}".replace(".", "p").replace("-", "m").replace("+", "")
+            _variants[t_min] = _build(f"_tmin{tag}", (f"-DSMGS_T_MIN={float(t_min)!r}f",))
+    return _variants[t_min]
 
 
 class _RasterizeCUDA(torch.autograd.Function):
@@ -187,9 +201,11 @@ def rasterize_splats_cuda(
     eq15: Eq15 = "solved",
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
+    t_min: float = K.T_MIN,
 ) -> RenderOutput:
     """Composite projected splats on a CUDA device; see ``smgs.raster.rasterize_splats`` for the
-    arguments. float32 CUDA tensors, all on one device."""
+    arguments. float32 CUDA tensors, all on one device. ``t_min`` (the early-stop transmittance) is
+    compiled into the kernel: a value other than the default costs one more build."""
     mode_flags(mode)
     if eq15 not in ("solved", "printed"):
         raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
@@ -203,5 +219,7 @@ def rasterize_splats_cuda(
             raise TypeError(f"cuda backend: {name} must be on {dev}, got {t.device}")
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
-    return composite(extension(), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
+    if not 0.0 <= t_min < 1.0:
+        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    return composite(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
                      mode, k_max, background, eq15, reg_values, reg_depth_scale)
