@@ -8,8 +8,10 @@
 // Backward: non-softmax modes and the part of each ray after its first k_max composited splats go
 // back to front with the 3DGS trick (T_before = T_after / (1 - a)); the softmax head is recomputed
 // per block into per-thread scratch (one entry per list position where some lane composites a
-// head splat, so at most 16·k_max entries) and reversed through the hand-written adjoint.
-// Memory is O(pixels + pairs of tiles), never pixels × k_max.
+// head splat, so at most 2·16·k_max entries: the state before the step and the step's
+// intermediates, which the reverse sweep reads instead of recomputing the step a second time)
+// and reversed through the hand-written adjoint. Memory is O(pixels + pairs of tiles) plus that
+// per-thread scratch, never pixels × k_max.
 #include <torch/extension.h>
 
 #include <algorithm>
@@ -30,6 +32,8 @@
 
 namespace smgs {
 
+#define SMGS_FI inline __attribute__((always_inline))
+
 // ---- 16-lane SIMD types ------------------------------------------------------------------------
 constexpr int kLanes = 16;
 
@@ -43,41 +47,41 @@ struct VF {
   VF(__m512 x) : v(x) {}
   VF(float x) : v(_mm512_set1_ps(x)) {}
 };
-inline VF operator+(VF a, VF b) { return _mm512_add_ps(a.v, b.v); }
-inline VF operator-(VF a, VF b) { return _mm512_sub_ps(a.v, b.v); }
-inline VF operator*(VF a, VF b) { return _mm512_mul_ps(a.v, b.v); }
-inline VF operator/(VF a, VF b) { return _mm512_div_ps(a.v, b.v); }
-inline VF operator-(VF a) { return _mm512_castsi512_ps(_mm512_xor_si512(_mm512_castps_si512(a.v), _mm512_set1_epi32(int(0x80000000u)))); }
-inline VM operator<(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)}; }
-inline VM operator<=(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)}; }
-inline VM operator>(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)}; }
-inline VM operator>=(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)}; }
-inline VM operator==(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_EQ_OQ)}; }
-inline VM operator!=(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_NEQ_UQ)}; }
-inline VM mand(VM a, VM b) { return {__mmask16(a.m & b.m)}; }
-inline VM mor(VM a, VM b) { return {__mmask16(a.m | b.m)}; }
-inline VM mnot(VM a) { return {__mmask16(~a.m)}; }
-inline VF sel(VM m, VF a, VF b) { return _mm512_mask_blend_ps(m.m, b.v, a.v); }
+SMGS_FI VF operator+(VF a, VF b) { return _mm512_add_ps(a.v, b.v); }
+SMGS_FI VF operator-(VF a, VF b) { return _mm512_sub_ps(a.v, b.v); }
+SMGS_FI VF operator*(VF a, VF b) { return _mm512_mul_ps(a.v, b.v); }
+SMGS_FI VF operator/(VF a, VF b) { return _mm512_div_ps(a.v, b.v); }
+SMGS_FI VF operator-(VF a) { return _mm512_castsi512_ps(_mm512_xor_si512(_mm512_castps_si512(a.v), _mm512_set1_epi32(int(0x80000000u)))); }
+SMGS_FI VM operator<(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)}; }
+SMGS_FI VM operator<=(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)}; }
+SMGS_FI VM operator>(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)}; }
+SMGS_FI VM operator>=(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)}; }
+SMGS_FI VM operator==(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_EQ_OQ)}; }
+SMGS_FI VM operator!=(VF a, VF b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_NEQ_UQ)}; }
+SMGS_FI VM mand(VM a, VM b) { return {__mmask16(a.m & b.m)}; }
+SMGS_FI VM mor(VM a, VM b) { return {__mmask16(a.m | b.m)}; }
+SMGS_FI VM mnot(VM a) { return {__mmask16(~a.m)}; }
+SMGS_FI VF sel(VM m, VF a, VF b) { return _mm512_mask_blend_ps(m.m, b.v, a.v); }
 // min/max with a constant second argument; a NaN first argument propagates (as torch.clamp)
-inline VF min_c(VF x, VF c) { return _mm512_min_ps(c.v, x.v); }
-inline VF max_c(VF x, VF c) { return _mm512_max_ps(c.v, x.v); }
-inline VF vabs(VF x) { return _mm512_abs_ps(x.v); }
-inline VF vsqrt(VF x) { return _mm512_sqrt_ps(x.v); }
-inline VF fmadd(VF a, VF b, VF c) { return _mm512_fmadd_ps(a.v, b.v, c.v); }
+SMGS_FI VF min_c(VF x, VF c) { return _mm512_min_ps(c.v, x.v); }
+SMGS_FI VF max_c(VF x, VF c) { return _mm512_max_ps(c.v, x.v); }
+SMGS_FI VF vabs(VF x) { return _mm512_abs_ps(x.v); }
+SMGS_FI VF vsqrt(VF x) { return _mm512_sqrt_ps(x.v); }
+SMGS_FI VF fmadd(VF a, VF b, VF c) { return _mm512_fmadd_ps(a.v, b.v, c.v); }
 // 1/x and √x for the positive normal denominators of the softmax step: rcp14 / rsqrt14 and one
 // Newton step (~1 ulp; the divide/sqrt unit is otherwise the bottleneck of a softmax step).
-inline VF vrcp(VF x) {
+SMGS_FI VF vrcp(VF x) {
   const __m512 r = _mm512_rcp14_ps(x.v);
   return _mm512_fmadd_ps(r, _mm512_fnmadd_ps(x.v, r, _mm512_set1_ps(1.0f)), r);
 }
-inline VF vsqrt_pos(VF x) {
+SMGS_FI VF vsqrt_pos(VF x) {
   const __m512 y = _mm512_rsqrt14_ps(x.v);
   const __m512 g = _mm512_mul_ps(x.v, y), h = _mm512_mul_ps(_mm512_set1_ps(0.5f), y);
   const __m512 g1 = _mm512_fmadd_ps(g, _mm512_fnmadd_ps(g, h, _mm512_set1_ps(0.5f)), g);
   return _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(x.v, _mm512_setzero_ps(), _CMP_GT_OQ), g1);
 }
 // exp: Cephes expf polynomial (~1 ulp) with scalef for 2^n (exact under/overflow to 0 / inf).
-inline VF vexp(VF x) {
+SMGS_FI VF vexp(VF x) {
   __m512 v = _mm512_min_ps(_mm512_set1_ps(88.8f), x.v);
   v = _mm512_max_ps(_mm512_set1_ps(-104.0f), v);
   __m512 n = _mm512_roundscale_ps(_mm512_mul_ps(v, _mm512_set1_ps(1.44269504088896341f)),
@@ -95,7 +99,7 @@ inline VF vexp(VF x) {
   return _mm512_scalef_ps(y, n);
 }
 // log: Cephes logf polynomial on the mantissa in [√½, √2) (getexp/getmant handle denormals).
-inline VF vlog(VF x) {
+SMGS_FI VF vlog(VF x) {
   __m512 e = _mm512_getexp_ps(x.v);
   __m512 m = _mm512_getmant_ps(x.v, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_src);
   __mmask16 big = _mm512_cmp_ps_mask(m, _mm512_set1_ps(1.41421356237f), _CMP_GT_OQ);
@@ -120,15 +124,15 @@ inline VF vlog(VF x) {
   __mmask16 neg = _mm512_cmp_ps_mask(x.v, _mm512_setzero_ps(), _CMP_LT_OQ);
   return _mm512_mask_mov_ps(r, neg, _mm512_set1_ps(std::numeric_limits<float>::quiet_NaN()));
 }
-inline bool any(VM m) { return m.m != 0; }
-inline bool all(VM m) { return m.m == 0xFFFF; }
-inline int popcount(VM m) { return __builtin_popcount(unsigned(m.m)); }
-inline VM mask_from_bits(unsigned b) { return {__mmask16(b)}; }
-inline unsigned bits(VM m) { return m.m; }
-inline float hsum(VF x) { return _mm512_reduce_add_ps(x.v); }
-inline float hmax(VF x) { return _mm512_reduce_max_ps(x.v); }
-inline VF load(const float* p) { return _mm512_loadu_ps(p); }
-inline void store(float* p, VF x) { _mm512_storeu_ps(p, x.v); }
+SMGS_FI bool any(VM m) { return m.m != 0; }
+SMGS_FI bool all(VM m) { return m.m == 0xFFFF; }
+SMGS_FI int popcount(VM m) { return __builtin_popcount(unsigned(m.m)); }
+SMGS_FI VM mask_from_bits(unsigned b) { return {__mmask16(b)}; }
+SMGS_FI unsigned bits(VM m) { return m.m; }
+SMGS_FI float hsum(VF x) { return _mm512_reduce_add_ps(x.v); }
+SMGS_FI float hmax(VF x) { return _mm512_reduce_max_ps(x.v); }
+SMGS_FI VF load(const float* p) { return _mm512_loadu_ps(p); }
+SMGS_FI void store(float* p, VF x) { _mm512_storeu_ps(p, x.v); }
 #else
 // Portable fallback: 16 floats with plain loops (vectorised by the compiler where it can).
 struct VM {
@@ -179,45 +183,45 @@ SMGS_MAP(vlog, std::log(x))
 SMGS_MAP(vrcp, 1.0f / x)
 SMGS_MAP(vsqrt_pos, std::sqrt(x))
 #undef SMGS_MAP
-inline VM mand(VM a, VM b) { return {a.m & b.m}; }
-inline VM mor(VM a, VM b) { return {a.m | b.m}; }
-inline VM mnot(VM a) { return {~a.m & 0xFFFFu}; }
-inline VF sel(VM m, VF a, VF b) {
+SMGS_FI VM mand(VM a, VM b) { return {a.m & b.m}; }
+SMGS_FI VM mor(VM a, VM b) { return {a.m | b.m}; }
+SMGS_FI VM mnot(VM a) { return {~a.m & 0xFFFFu}; }
+SMGS_FI VF sel(VM m, VF a, VF b) {
   VF r;
   for (int i = 0; i < kLanes; ++i) r.v[i] = ((m.m >> i) & 1u) ? a.v[i] : b.v[i];
   return r;
 }
-inline VF min_c(VF x, VF c) {
+SMGS_FI VF min_c(VF x, VF c) {
   VF r;
   for (int i = 0; i < kLanes; ++i) r.v[i] = c.v[i] < x.v[i] ? c.v[i] : x.v[i];
   return r;
 }
-inline VF max_c(VF x, VF c) {
+SMGS_FI VF max_c(VF x, VF c) {
   VF r;
   for (int i = 0; i < kLanes; ++i) r.v[i] = c.v[i] > x.v[i] ? c.v[i] : x.v[i];
   return r;
 }
-inline bool any(VM m) { return (m.m & 0xFFFFu) != 0; }
-inline bool all(VM m) { return (m.m & 0xFFFFu) == 0xFFFFu; }
-inline int popcount(VM m) { return __builtin_popcount(m.m & 0xFFFFu); }
-inline VM mask_from_bits(unsigned b) { return {b & 0xFFFFu}; }
-inline unsigned bits(VM m) { return m.m & 0xFFFFu; }
-inline float hsum(VF x) {
+SMGS_FI bool any(VM m) { return (m.m & 0xFFFFu) != 0; }
+SMGS_FI bool all(VM m) { return (m.m & 0xFFFFu) == 0xFFFFu; }
+SMGS_FI int popcount(VM m) { return __builtin_popcount(m.m & 0xFFFFu); }
+SMGS_FI VM mask_from_bits(unsigned b) { return {b & 0xFFFFu}; }
+SMGS_FI unsigned bits(VM m) { return m.m & 0xFFFFu; }
+SMGS_FI float hsum(VF x) {
   float s = 0.f;
   for (int i = 0; i < kLanes; ++i) s += x.v[i];
   return s;
 }
-inline float hmax(VF x) {
+SMGS_FI float hmax(VF x) {
   float s = x.v[0];
   for (int i = 1; i < kLanes; ++i) s = std::max(s, x.v[i]);
   return s;
 }
-inline VF load(const float* p) {
+SMGS_FI VF load(const float* p) {
   VF r;
   std::memcpy(r.v, p, sizeof(r.v));
   return r;
 }
-inline void store(float* p, VF x) { std::memcpy(p, x.v, sizeof(x.v)); }
+SMGS_FI void store(float* p, VF x) { std::memcpy(p, x.v, sizeof(x.v)); }
 #endif
 
 }  // namespace smgs
@@ -469,7 +473,7 @@ struct Lanes {
   VF px, py;
   VM valid;
   int idx[kLanes];  // pixel index or -1
-  void init(int x0, int y0, int W, int H) {
+  SMGS_FI void init(int x0, int y0, int W, int H) {
     alignas(64) float fx[kLanes], fy[kLanes];
     unsigned v = 0;
     for (int l = 0; l < kLanes; ++l) {
@@ -525,7 +529,7 @@ struct Chan<0> {
 // Sums of the lanes of 16 vectors, as one vector (lane k = Σ lanes of v[k]): a transposing tree of
 // 45 shuffles and adds instead of 16 horizontal reductions.
 #ifdef SMGS_AVX512
-inline VF reduce16(const VF* v) {
+SMGS_FI VF reduce16(const VF* v) {
   // the tree leaves lane 4j+e holding input 4e+j: feed it transposed so the result is in order
   constexpr int tr[16] = {0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15};
   __m512 w[8];
@@ -543,12 +547,25 @@ inline VF reduce16(const VF* v) {
   return _mm512_add_ps(_mm512_castpd_ps(_mm512_unpacklo_pd(d0, d1)), _mm512_castpd_ps(_mm512_unpackhi_pd(d0, d1)));
 }
 #else
-inline VF reduce16(const VF* v) {
+SMGS_FI VF reduce16(const VF* v) {
   alignas(64) float r[kLanes];
   for (int k = 0; k < kLanes; ++k) r[k] = hsum(v[k]);
   return load(r);
 }
 #endif
+
+// vanilla_coef for the softmax modes' non-softmax lanes: there wk only matters in a lane's head, and
+// a head lane takes the vanilla step only at A = 0, where wk = aT / (0 + aT) = 1 exactly; so no
+// division.
+SMGS_FI Coef<VF> head_coef(VF T, VF A, VF a) {
+  Coef<VF> c;
+  c.aT = a * T;
+  c.An = A + c.aT;
+  c.wk = VF(1.f);
+  c.Tn = T * (VF(1.f) - a);
+  c.r = VF(1.f);
+  return c;
+}
 
 // ---- forward ---------------------------------------------------------------------------------------
 template <bool GEF, bool SOFT, int NCT>
@@ -613,7 +630,7 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
       if (SOFT) {
         const VM soft = mand(head, A[v] > VF(0.f));
         const VF p = -k[v].q;
-        Coef<VF> cf = vanilla_coef(T[v], A[v], a);
+        Coef<VF> cf = head_coef(T[v], A[v], a);
         if (any(soft)) {
           const SoftFwd<VF> f = softmax_fwd(T[v], A[v], dp[v], pp[v], a, p, d, s[P_BE], s[P_GA], sc.solved);
           cf.Tn = sel(soft, f.T0, cf.Tn);
@@ -715,6 +732,7 @@ struct HeadScratch {
   std::vector<VF> st;  // per entry and vector: T, A, d_past, p_past, C[nc]
   std::vector<int32_t> pos;
   std::vector<uint32_t> mask;  // per entry and vector
+  std::vector<SoftFwd<VF>> sf;  // per entry and vector: the softmax step, reused by phase 2
 };
 
 // G: gradient rows (stride Sp, pk layout) of this tile's list entries, summed over its blocks.
@@ -805,6 +823,7 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
           hs.pos.resize(ne + 64);
           hs.mask.resize(NV * (ne + 64));
           hs.st.resize((ne + 64) * NV * esz);
+          if (SOFT) hs.sf.resize((ne + 64) * NV);
         }
         hs.pos[ne] = i;
         for (int v = 0; v < NV; ++v) {
@@ -823,9 +842,10 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
           const VF a = ab[v].a;
           const VM soft = mand(rv, A1[v] > VF(0.f));
           const VF p = -k[v].q;
-          Coef<VF> cf = vanilla_coef(T1[v], A1[v], a);
+          Coef<VF> cf = head_coef(T1[v], A1[v], a);
           if (any(soft)) {
-            const SoftFwd<VF> f = softmax_fwd(T1[v], A1[v], dp1[v], pp1[v], a, p, d, s[P_BE], s[P_GA], sc.solved);
+            SoftFwd<VF>& f = hs.sf[size_t(ne - 1) * NV + v];
+            f = softmax_fwd(T1[v], A1[v], dp1[v], pp1[v], a, p, d, s[P_BE], s[P_GA], sc.solved);
             cf.Tn = sel(soft, f.T0, cf.Tn);
             cf.An = sel(soft, f.U, cf.An);
             cf.r = sel(soft, f.r, cf.r);
@@ -915,14 +935,14 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
       VF gTn, gAn;
       if (SOFT) {
         const VM soft = mand(hm, Apre > VF(0.f));
-        Coef<VF> cf = vanilla_coef(Tpre, Apre, a);
-        SoftFwd<VF> f;
+        Coef<VF> cf = head_coef(Tpre, Apre, a);
         const bool anysoft = any(soft);
+        // phase 1's step of this entry and vector (same inputs): not recomputed
+        const SoftFwd<VF>* fp = anysoft ? hs.sf.data() + size_t(e + 1) * NV + v : nullptr;
         if (anysoft) {
-          f = softmax_fwd(Tpre, Apre, dpre, ppre, a, p, d, s[P_BE], s[P_GA], sc.solved);
-          cf.r = sel(soft, f.r, cf.r);
-          cf.aT = sel(soft, f.aT, cf.aT);
-          cf.wk = sel(soft, f.wk, cf.wk);
+          cf.r = sel(soft, fp->r, cf.r);
+          cf.aT = sel(soft, fp->aT, cf.aT);
+          cf.wk = sel(soft, fp->wk, cf.wk);
         }
         // adjoint of C' = C·r + c·aT (depth is channel nch)
         VF g_r(0.f), g_aT(0.f);
@@ -952,7 +972,7 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
         gAn = gAv;
         g_a = gav;
         if (anysoft) {
-          const SoftGrad<VF> sg = softmax_bwd(f, Tpre, Apre, dpre, ppre, a, p, s[P_BE], s[P_GA], sc.solved,
+          const SoftGrad<VF> sg = softmax_bwd(*fp, Tpre, Apre, dpre, ppre, a, p, s[P_BE], s[P_GA], sc.solved,
                                               gT[v], gA[v], g_r, g_aT, g_wk);
           gTn = sel(soft, sg.T, gTn);
           gAn = sel(soft, sg.A, gAn);

@@ -14,7 +14,8 @@
 // order, so that the float32 results agree with it to rounding; see that file's docstring for why
 // each stable form is used. Adjoints reverse each forward statement in turn. One deliberate change:
 // every quotient by the same denominator (U, S, E, Q) multiplies by one shared reciprocal, since
-// divisions dominate the cost of a step (a rounding-level change, ~1 ulp).
+// divisions dominate the cost of a step (a rounding-level change, ~1 ulp); and the solved softmax
+// step uses the sigmoid weights without their common normaliser (see softmax_fwd).
 #pragma once
 
 #if defined(__CUDACC__)
@@ -188,12 +189,21 @@ SMGS_HD inline SoftFwd<V> softmax_fwd(V T, V A, V dp, V pp, V a, V p, float d, f
   f.U = A + a * T;                            // 1 - T0 without cancellation
   f.iU = vrcp(f.U);
   V x = V(beta) * (p - pp);                   // line 9
-  // w_cur = σ(x), w_past = σ(-x) (line 11 as a second sigmoid, never 1 - w_cur): one exp
+  // w_cur = σ(x), w_past = σ(-x) (line 11 as a second sigmoid, never 1 - w_cur): one exp.
+  // Solved eq. (15): every later quantity is a ratio of h_cur, h_past (t_past, t_cur, F), so the
+  // common factor 1/(1 + e^-|x|) is left out: (w_cur, w_past) = (1, e^-x) or (e^x, 1), which saves
+  // a reciprocal on the step's dependency chain. The printed form mixes h_cur with t_past, so it
+  // keeps the normalised weights.
   V ex = vexp(-vabs(x));
-  V big = vrcp(one + ex), small = ex * big;
   auto xpos = x >= zero;
-  f.w_cur = sel(xpos, big, small);
-  f.w_past = sel(xpos, small, big);
+  if (solved) {
+    f.w_cur = sel(xpos, one, ex);
+    f.w_past = sel(xpos, ex, one);
+  } else {
+    V big = vrcp(one + ex), small = ex * big;
+    f.w_cur = sel(xpos, big, small);
+    f.w_past = sel(xpos, small, big);
+  }
   f.h_cur = f.w_cur * a;                      // line 10
   f.h_past = f.w_past * A;                    // line 12
   f.S = f.h_past + f.h_cur;
@@ -324,10 +334,14 @@ SMGS_HD inline SoftGrad<V> softmax_bwd(const SoftFwd<V>& f, V T, V A, V dp, V pp
   g.A = g.A + g_hpast * f.w_past;
   V g_wcur = g_hcur * a;
   g.a = g.a + g_hcur * f.w_cur;
-  // w_cur = σ(x), w_past = σ(-x): dσ(x)/dx = w_cur·w_past
-  V g_x = (g_wcur - g_wpast) * f.w_cur * f.w_past;
+  // w_cur = σ(x), w_past = σ(-x): dσ(x)/dx = w_cur·w_past; solved: the unnormalised weights
+  // (1, e^-x) for x >= 0, (e^x, 1) below
+  V g_x;
+  const V dpp = p - pp;
+  if (solved) g_x = sel(V(beta) * dpp >= zero, -(g_wpast * f.w_past), g_wcur * f.w_cur);
+  else g_x = (g_wcur - g_wpast) * f.w_cur * f.w_past;
   // x = β·(p - p_past)
-  g.beta = g_x * (p - pp);
+  g.beta = g_x * dpp;
   g.p = g_x * V(beta);
   g.pp = -g.p;
   // U = A + a·T
