@@ -61,3 +61,23 @@ def test_l1_and_psnr():
     assert abs(float(l1(x, y)) - 0.1) < 1e-7
     assert abs(psnr(x, y) - 20.0) < 1e-4
     assert psnr(y, y) == float("inf")
+
+
+def test_ray_variance_gradient_matches_autograd_formula():
+    gen = torch.Generator().manual_seed(0)
+    w = torch.rand(6, 5, 1, generator=gen, dtype=torch.float64)
+    w[0, :3] = 0                                               # uncovered pixels
+    v = torch.rand(6, 5, 2, generator=gen, dtype=torch.float64)
+    reg = torch.cat([w, w * v, w * v * v * 1.3], -1).requires_grad_(True)
+
+    def by_hand(reg):
+        f = reg.reshape(-1, 5)
+        f = f[f[:, 0] > 0]
+        mean = f[:, 1:3] / f[:, :1]
+        return (f[:, 3:] / f[:, :1] - mean * mean).clamp_min(0).mean(0)
+
+    torch.testing.assert_close(ray_variance(reg), by_hand(reg))
+    gw = torch.tensor([0.7, -1.1], dtype=torch.float64)
+    (g,) = torch.autograd.grad((ray_variance(reg) * gw).sum(), reg)
+    (g_ref,) = torch.autograd.grad((by_hand(reg) * gw).sum(), reg)
+    torch.testing.assert_close(g, g_ref)

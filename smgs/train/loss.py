@@ -112,19 +112,38 @@ class SSIMLoss:
         return _SSIM.apply(x.permute(2, 0, 1), yd, mu2, s2, bv, bh)
 
 
+class _RayVariance(torch.autograd.Function):
+    """Var_r = mean over covered pixels of max(S2/S0 − (S1/S0)², 0), on the channel-major copy of
+    the sums (contiguous rows: the [H·W, 5] layout makes every op a slow size-2 broadcast), with
+    the analytic backward: ∂/∂S2 = 1/S0, ∂/∂S1 = −2·μ/S0, ∂/∂S0 = −(Var − μ²)/S0 (μ = S1/S0),
+    passed where Var ≥ 0 (torch.clamp's mask)."""
+
+    @staticmethod
+    def forward(ctx, reg, r: int):  # type: ignore[override]
+        s = reg.reshape(-1, 1 + 2 * r).T.contiguous()          # [1 + 2R, P]
+        hit = s[0] > 0
+        inv = torch.where(hit, s[0], torch.ones((), dtype=s.dtype)).reciprocal_().mul_(hit)
+        mean = s[1:1 + r] * inv
+        var = s[1 + r:] * inv - mean * mean
+        keep = var >= 0
+        n = hit.sum().clamp_min(1)
+        ctx.save_for_backward(inv, mean, var, keep, n)
+        ctx.shape = reg.shape
+        return (var * keep).sum(1) / n
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        inv, mean, var, keep, n = ctx.saved_tensors
+        gv = (g / n)[:, None] * keep * inv                      # dL/dS2 [R, P] (0 where uncovered)
+        d = torch.cat([-(gv * (var - mean * mean)).sum(0, keepdim=True), -2 * gv * mean, gv], 0)
+        return d.T.reshape(ctx.shape), None
+
+
 def ray_variance(reg: torch.Tensor) -> torch.Tensor:
     """Per-ray weighted variances from the renderer's ``reg`` sums [H, W, 1 + 2R]
-    (Σw, Σw·v_r, Σw·v_r²): Var_r = Σw v²/Σw − (Σw v/Σw)² per pixel, averaged over the pixels
-    with Σw > 0. Returns [R] (zeros if no pixel is covered). Masked arithmetic rather than a
-    boolean gather: no data-dependent shapes, and the backward writes no scatter."""
-    r = (reg.shape[-1] - 1) // 2
-    flat = reg.reshape(-1, reg.shape[-1])
-    sw = flat[:, :1]
-    hit = sw > 0
-    safe = torch.where(hit, sw, torch.ones((), dtype=sw.dtype))
-    mean = flat[:, 1:1 + r] / safe
-    var = (flat[:, 1 + r:] / safe - mean * mean).clamp_min(0.0) * hit
-    return var.sum(0) / hit.sum().clamp_min(1)
+    (Σw, Σw·v_r, Σw·v_r²): Var_r = Σw v²/Σw − (Σw v/Σw)² per pixel (clamped at 0), averaged over
+    the pixels with Σw > 0. Returns [R] (zeros if no pixel is covered)."""
+    return _RayVariance.apply(reg, (reg.shape[-1] - 1) // 2)
 
 
 def l1(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
