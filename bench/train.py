@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -80,24 +81,30 @@ def bench(scene: Scene, scene_name: str, method: str, steps: int, warmup: int, b
     tr = m.trainer
     tr.timings = {k: 0.0 for k in tr.timings}
     tr.profile = True
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for s in range(warmup, warmup + steps):
         m.train_step(s)
-    total = time.perf_counter() - t0
+    total, cpu = time.perf_counter() - t0, time.process_time() - c0
     shares = {k: v / total for k, v in tr.timings.items()}
     return {"scene": scene_name, "method": method, "gaussians": m.num_gaussians(),
-            "sec_per_step": total / steps, **{f"{k}_share": round(v, 3) for k, v in shares.items()}}
+            "sec_per_step": total / steps, "cpu_sec_per_step": cpu / steps,
+            **{f"{k}_share": round(v, 3) for k, v in shares.items()}}
 
 
-def fit4(method: str, backend: str, steps: int = 10_000) -> float:
+def fit4(method: str, backend: str, steps: int = 10_000) -> tuple[float, float]:
+    """Wall and process CPU seconds of a full 4-Gaussian circle4 fit (set-up excluded)."""
     from baselines import create_method
     from smgs.data.patterns import pattern_scene
 
     m = create_method(method, pattern_scene("circle4", 128), _config("pattern4", method, backend))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for s in range(steps):
         m.train_step(s)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
+def load() -> str:
+    return "load average " + " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,12 +125,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     backend = resolve_backend(args.backend, "cpu", torch.float32)
     print(f"backend {backend}, torch threads {torch.get_num_threads()}, {args.steps} timed steps "
-          f"after {args.warmup} warm-up")
+          f"after {args.warmup} warm-up; {load()} (s/step is wall time, cpu the process CPU time: "
+          f"on a shared machine compare cpu, and ratios within one run)")
     scenes = {"pattern4": pattern_scene("circle4", 128), "pattern256": pattern_scene("circle4", 128)}
     if "scene3d" in args.scenes:
         scenes["scene3d"] = procedural_scene()
     rows = []
-    hdr = f"{'scene':11s} {'method':13s} {'#GS':>5s} {'s/step':>9s} {'render':>7s} {'loss':>6s} " \
+    hdr = f"{'scene':11s} {'method':13s} {'#GS':>5s} {'s/step':>9s} {'cpu':>9s} {'render':>7s} {'loss':>6s} " \
           f"{'backward':>8s} {'optim':>6s} {'strategy':>8s}"
     print(hdr)
     for sn in args.scenes:
@@ -131,16 +139,20 @@ def main(argv: list[str] | None = None) -> int:
             r = bench(scenes[sn], sn, meth, args.steps, args.warmup, args.backend)
             r["backend"] = backend
             rows.append(r)
-            print(f"{sn:11s} {meth:13s} {r['gaussians']:5d} {r['sec_per_step']:9.5f} {r['render_share']:7.1%} "
+            print(f"{sn:11s} {meth:13s} {r['gaussians']:5d} {r['sec_per_step']:9.5f} {r['cpu_sec_per_step']:9.5f} "
+                  f"{r['render_share']:7.1%} "
                   f"{r['loss_share']:6.1%} {r['backward_share']:8.1%} {r['optim_share']:6.1%} "
                   f"{r['strategy_share']:8.1%}", flush=True)
             if sn == "pattern4":
                 print(f"{'':11s} -> 10K-step 4-Gaussian fit ≈ {r['sec_per_step'] * 1e4:.1f} s (goal < 30 s)")
     if args.fit4:
         for meth in args.methods:
-            secs = fit4(meth, args.backend)
-            rows.append({"scene": "fit4_10k", "method": meth, "seconds": secs, "backend": backend})
-            print(f"10K-step 4-Gaussian circle4 fit, {meth}: {secs:.1f} s (goal < 30 s)", flush=True)
+            secs, cpu = fit4(meth, args.backend)
+            rows.append({"scene": "fit4_10k", "method": meth, "seconds": secs, "cpu_seconds": cpu,
+                         "backend": backend})
+            print(f"10K-step 4-Gaussian circle4 fit, {meth}: {secs:.1f} s wall, {cpu:.1f} s cpu "
+                  f"(goal < 30 s; {load()})", flush=True)
+    print(load())
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)

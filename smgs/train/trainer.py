@@ -225,8 +225,13 @@ class Trainer:
             loss.backward()
         t3 = time.perf_counter()
         self.optimizer.step()
-        if cfg.check_finite_every and it % cfg.check_finite_every == 0:
-            self.check_finite(self.step_count, "after the optimiser step")
+        every = cfg.check_finite_every
+        if every and it % every == 0:
+            # A NaN reaching the loss stops the step above at once; this catches parameters that
+            # went non-finite without showing in this view, up to ``every`` − 1 steps late.
+            self.check_finite(self.step_count, "after the optimiser step" + (
+                "" if every == 1 else f" (checked every {every} steps: it appeared at step "
+                                      f"{max(self.step_count - every + 1, 0)} or later)"))
         t4 = time.perf_counter()
         ev = None
         if track:

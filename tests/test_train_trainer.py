@@ -1,0 +1,39 @@
+"""Trainer step bookkeeping: the periodic finite check, statistics skipped at a full cap."""
+
+import pytest
+import torch
+
+from smgs.data.patterns import pattern_scene
+from smgs.train import NonFiniteError, TrainConfig, from_dict, pattern_config, to_dict
+from smgs.train.trainer import Trainer
+
+
+def _trainer(mode="3dgs", cap=4, **over) -> Trainer:
+    cfg = to_dict(pattern_config(mode, cap=cap, steps=50))
+    cfg.update(over)
+    return Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg))
+
+
+def test_periodic_finite_check_names_group_step_and_delay():
+    tr = _trainer(check_finite_every=4)
+    tr.train_step(0)
+    with torch.no_grad():           # hidden from the loss: the Gaussian is moved behind the camera
+        tr.gaussians.params["means"][0] = torch.tensor([0.0, 0.0, -5.0])
+        tr.gaussians.params["alpha"][0] = float("nan")
+    tr.train_step(1)
+    tr.train_step(2)                # iteration 3: no check
+    with pytest.raises(NonFiniteError, match=r"'alpha' at step 3.*every 4 steps.*at step 0 or later") as e:
+        tr.train_step(3)            # iteration 4: checked
+    assert e.value.group == "alpha" and e.value.step == 3
+
+
+def test_statistics_skipped_only_while_the_cap_is_full():
+    tr = _trainer(cap=4)
+    assert len(tr.gaussians) == 4 and not tr.strategy.wants_stats(4)
+    tr.train_step(0)
+    assert tr.strategy.grad2d.numel() == 0          # nothing accumulated
+    tr = _trainer(cap=8)
+    tr.train_step(0)
+    assert tr.strategy.grad2d.numel() == 4 and tr.strategy.count.sum() > 0
+    tr = _trainer(cap=4, densify={"budget": "cap", "cap": 4, "reset_every": 3000})
+    assert tr.strategy.wants_stats(4)               # size pruning reads the screen radii
