@@ -38,9 +38,32 @@ def method_config(cfg: dict) -> dict[str, Any]:
     densify.update(budget=budget.get("preset", budget["name"]), grow_grad2d=budget["densify_grad_threshold"])
     if budget.get("cap") is not None:
         densify["cap"] = int(budget["cap"])
-    steps = int(cfg["dataset"].get("steps") or cfg["protocol"]["steps"])
+    own_steps = cfg["dataset"].get("steps")    # a dataset with its own step count has its own schedule
+    steps = int(own_steps or cfg["protocol"]["steps"])
     mc.update(steps=steps, seed=int(cfg["seed"]), backend=cfg.get("backend", "auto"), densify=densify)
+    if not own_steps:
+        scale_schedule(mc, steps, cfg["protocol"].get("schedule_steps"))
     return mc
+
+
+SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
+
+
+def scale_schedule(mc: dict[str, Any], steps: int, schedule_steps: int | None) -> None:
+    """Scale the 3DGS schedule (written for ``schedule_steps``, 30K) to a run of ``steps``, as
+    gsplat's ``steps_scaler`` does: refinement start/stop/interval, opacity reset and the SH degree
+    interval. Unscaled, a 3000-step run would reset every opacity to 0.01 at its last step."""
+    if not schedule_steps or steps == int(schedule_steps):
+        return
+    from smgs.train import DensifyConfig, TrainConfig
+
+    f = steps / int(schedule_steps)
+    d, defaults = mc["densify"], DensifyConfig()
+    for k in SCHEDULE_KEYS:
+        v = d.get(k, getattr(defaults, k))
+        if v is not None:
+            d[k] = max(1, round(v * f))
+    mc["sh_degree_interval"] = max(1, round(mc.get("sh_degree_interval", TrainConfig.sh_degree_interval) * f))
 
 
 def eval_steps(steps: int, fractions: list[float]) -> list[int]:
