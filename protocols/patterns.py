@@ -164,40 +164,48 @@ def merge_cells(sources: list[Path], out: Path) -> list[dict]:
     return rows
 
 
+def method_label(method: str, overrides: str) -> str:
+    """A method run with config overrides is its own row: ``softmax_gs [t_min=0]``."""
+    return f"{method} [{overrides}]" if overrides else method
+
+
 def summarise(rows: list[dict]) -> list[dict]:
-    """Seed statistics per pattern × method × count (ok rows only)."""
+    """Seed statistics per pattern × method (+ overrides) × count (ok rows only)."""
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         if r["status"] != "ok":
             continue
-        groups.setdefault((r["pattern"], r["method"], int(r["n_gaussians"])), []).append(r)
+        label = method_label(r["method"], r.get("overrides") or "")
+        groups.setdefault((r["pattern"], label, int(r["n_gaussians"]), r["method"]), []).append(r)
     paper = paper_table1()
     out = []
-    for (pat, meth, n), rs in groups.items():
+    for (pat, label, n, meth), rs in groups.items():
         ps = [float(r["psnr"]) for r in rs]
         secs = [float(r["train_seconds"]) for r in rs]
         pp = paper.get((pat, meth, n))
         mean = statistics.fmean(ps)
-        out.append(dict(pattern=pat, method=meth, n_gaussians=n, seeds=len(ps), psnr_mean=round(mean, 2),
+        out.append(dict(pattern=pat, method=label, n_gaussians=n, seeds=len(ps), psnr_mean=round(mean, 2),
                         psnr_std=round(statistics.stdev(ps), 2) if len(ps) > 1 else 0.0,
                         psnr_min=round(min(ps), 2), psnr_max=round(max(ps), 2), paper_psnr=pp,
                         delta_vs_paper=None if pp is None else round(mean - pp, 2),
                         train_seconds_mean=round(statistics.fmean(secs), 1),
-                        steps=int(rs[0]["steps"]), size=int(rs[0]["size"])))
+                        steps=int(rs[0]["steps"]), size=int(rs[0]["size"]),
+                        seed_list=" ".join(sorted((r["seed"] for r in rs), key=int))))
     order = {m: i for i, m in enumerate(METHOD_ORDER)}
-    out.sort(key=lambda r: (r["pattern"], r["n_gaussians"], order.get(r["method"], 99), r["method"]))
+    out.sort(key=lambda r: (r["pattern"], r["n_gaussians"], order.get(r["method"].split(" [")[0], 99), r["method"]))
     return out
 
 
-def ordering_checks(summary: list[dict]) -> list[dict]:
-    """softmax_gs > gef_only > max(softmax_only, 3dgs) on seed means, per pattern and count."""
+def ordering_checks(summary: list[dict], softmax_gs: str = "softmax_gs") -> list[dict]:
+    """softmax_gs > gef_only > max(softmax_only, 3dgs) on seed means, per pattern and count;
+    ``softmax_gs`` names the row that stands for Softmax-GS (e.g. ``softmax_gs [t_min=0]``)."""
     by = {(r["pattern"], r["n_gaussians"], r["method"]): r["psnr_mean"] for r in summary}
     checks = []
     for pat, n in sorted({(r["pattern"], r["n_gaussians"]) for r in summary}):
-        v = {m: by.get((pat, n, m)) for m in METHOD_ORDER}
+        v = {m: by.get((pat, n, softmax_gs if m == "softmax_gs" else m)) for m in METHOD_ORDER}
         if any(x is None for x in v.values()):
             continue
-        checks.append(dict(pattern=pat, n_gaussians=n,
+        checks.append(dict(pattern=pat, n_gaussians=n, softmax_gs_row=softmax_gs,
                            softmax_gs_best=v["softmax_gs"] > max(v["gef_only"], v["softmax_only"], v["3dgs"]),
                            gef_over_rest=v["gef_only"] > max(v["softmax_only"], v["3dgs"]),
                            order=" > ".join(sorted(v, key=lambda m: -v[m]))))
@@ -207,7 +215,7 @@ def ordering_checks(summary: list[dict]) -> list[dict]:
 def write_tables(out: Path, rows: list[dict]) -> tuple[Path, Path]:
     summary = summarise(rows)
     fields = ["pattern", "method", "n_gaussians", "seeds", "psnr_mean", "psnr_std", "psnr_min", "psnr_max",
-              "paper_psnr", "delta_vs_paper", "train_seconds_mean", "steps", "size"]
+              "paper_psnr", "delta_vs_paper", "train_seconds_mean", "steps", "size", "seed_list"]
     csv_path, md_path = out / "table1.csv", out / "table1.md"
     with csv_path.open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields)
@@ -219,25 +227,30 @@ def write_tables(out: Path, rows: list[dict]) -> tuple[Path, Path]:
     for pat in sorted({r["pattern"] for r in summary}):
         lines += [f"## {pat}", "", "| method | " + " | ".join(f"{n} GS ours | paper" for n in counts) + " |",
                   "|---|" + "---|---|" * len(counts)]
-        for meth in [m for m in METHOD_ORDER if any(k[:2] == (pat, m) for k in by)]:
+        labels = [r["method"] for r in summary if r["pattern"] == pat]
+        for meth in sorted(set(labels), key=labels.index):
             cells = []
             for n in counts:
                 r = by.get((pat, meth, n))
                 if r is None:
                     cells += ["–", "–"]
                     continue
-                cells.append(f"{r['psnr_mean']:.2f} ± {r['psnr_std']:.2f} [{r['psnr_min']:.1f}, {r['psnr_max']:.1f}]"
-                             f" (n={r['seeds']}, {r['train_seconds_mean']:.0f} s)")
+                spread = (f" ± {r['psnr_std']:.2f} [{r['psnr_min']:.1f}, {r['psnr_max']:.1f}]" if r["seeds"] > 1
+                          else "")
+                cells.append(f"{r['psnr_mean']:.2f}{spread} (seeds {r['seed_list']}, {r['train_seconds_mean']:.0f} s)")
                 cells.append("–" if r["paper_psnr"] is None else f"{r['paper_psnr']:.2f}")
             lines.append(f"| {meth} | " + " | ".join(cells) + " |")
         lines.append("")
-    checks = ordering_checks(summary)
+    sgs_rows = sorted({r["method"] for r in summary if r["method"].startswith("softmax_gs")}, key=len)
+    checks = [c for s in sgs_rows for c in ordering_checks(summary, s)]
     if checks:
         lines += ["## Ordering (seed means): softmax_gs > gef_only > {softmax_only, 3dgs}", "",
-                  "| pattern | #GS | softmax_gs best | gef_only > rest | order |", "|---|---|---|---|---|"]
+                  "| pattern | #GS | Softmax-GS row | softmax_gs best | gef_only > rest | order |",
+                  "|---|---|---|---|---|---|"]
         for c in checks:
-            lines.append(f"| {c['pattern']} | {c['n_gaussians']} | {'yes' if c['softmax_gs_best'] else 'NO'} | "
-                         f"{'yes' if c['gef_over_rest'] else 'NO'} | {c['order']} |")
+            lines.append(f"| {c['pattern']} | {c['n_gaussians']} | {c['softmax_gs_row']} | "
+                         f"{'yes' if c['softmax_gs_best'] else 'NO'} | {'yes' if c['gef_over_rest'] else 'NO'} | "
+                         f"{c['order']} |")
         lines.append("")
     steps = sorted({r["steps"] for r in summary})
     sizes = sorted({r["size"] for r in summary})

@@ -63,3 +63,6 @@ def test_ordering_check():
     assert c["softmax_gs_best"] and c["gef_over_rest"] and c["order"].startswith("softmax_gs > gef_only")
     rows[1]["psnr_mean"] = 20.5
     assert not ordering_checks(rows)[0]["gef_over_rest"]
+    rows.append(dict(pattern="p", n_gaussians=4, method="softmax_gs [t_min=0]", psnr_mean=19))
+    (v,) = ordering_checks(rows, "softmax_gs [t_min=0]")
+    assert not v["softmax_gs_best"] and v["softmax_gs_row"] == "softmax_gs [t_min=0]"

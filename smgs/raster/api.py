@@ -21,6 +21,9 @@ _BACKENDS: dict[str, tuple[str, str]] = {
     "cuda": ("smgs.raster.cuda", "rasterize_splats_cuda"),
 }
 
+_T_MIN_BACKENDS = ("reference", "cpu")
+"""Backends that accept a transmittance threshold other than the default."""
+
 
 def _load_backend(name: str) -> Callable[..., RenderOutput]:
     if name not in _BACKENDS:
@@ -104,6 +107,7 @@ def rasterize_splats(
     eq15: Eq15 = "solved",
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
+    t_min: float = K.T_MIN,
 ) -> RenderOutput:
     """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
 
@@ -113,18 +117,28 @@ def rasterize_splats(
     ignores them. ``eq15`` selects the solved (default) or printed form of eq. (15).
     ``reg_values [N,R]`` (optional) adds per-pixel sums for the variance regulariser over the
     first k_max splats of each pixel, weighted by 1/(1 + (d - d_front)/reg_depth_scale)
-    (the weights carry no gradient).
+    (the weights carry no gradient). ``t_min``: a splat whose vanilla update would bring the
+    transmittance below it is not composited and the pixel stops (default 1e-4, the 3DGS rule;
+    0 never stops).
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode)
     if eq15 not in ("solved", "printed"):
         raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
     if k_max < 0:
         raise ValueError(f"k_max must be >= 0, got {k_max}")
+    if not 0.0 <= t_min < 1.0:
+        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     name = resolve_backend(backend, means2d.device, means2d.dtype)
     fn = _load_backend(name)
+    extra = {}
+    if t_min != K.T_MIN:
+        if name not in _T_MIN_BACKENDS:
+            raise ValueError(f"renderer backend {name!r} has the 3DGS t_min = {K.T_MIN} built in; "
+                             f"t_min = {t_min} needs one of {', '.join(_T_MIN_BACKENDS)}")
+        extra["t_min"] = t_min
     return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
               mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-              reg_depth_scale=reg_depth_scale)
+              reg_depth_scale=reg_depth_scale, **extra)
 
 
 def rasterize(
@@ -148,6 +162,7 @@ def rasterize(
     near_plane: float = K.NEAR_PLANE,
     eps2d: float = K.EPS2D,
     clamp_sh_colors: bool = True,
+    t_min: float = K.T_MIN,
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
 
@@ -181,6 +196,6 @@ def rasterize(
     out = rasterize_splats(means2d, proj.conics, opacities[ids], colors, proj.depths,
                            pick(alpha), pick(beta), pick(gamma), camera.width, camera.height,
                            mode=mode, k_max=k_max, background=background, backend=backend, eq15=eq15,
-                           reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale)
+                           reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale, t_min=t_min)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)
     return out

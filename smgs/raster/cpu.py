@@ -40,6 +40,7 @@ _CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-e
 _lock = threading.Lock()
 _ext = None
 _error: str | None = None
+_variants: dict[float, object] = {}   # t_min -> a build with -DSMGS_T_MIN (t_min != K.T_MIN)
 
 
 def _cpu_tag() -> str:
@@ -99,22 +100,36 @@ def unavailable_reason() -> str | None:
     return _error
 
 
-def extension():
-    """The loaded extension module (builds it if needed); raises if it cannot be built."""
+def extension(t_min: float = K.T_MIN):
+    """The loaded extension module (builds it if needed); raises if it cannot be built. A
+    ``t_min`` other than the default is compiled in (``-DSMGS_T_MIN``): one more build per value,
+    cached like the default one."""
     ext = _load()
     if ext is None:
         raise RuntimeError(f"smgs cpu renderer backend unavailable: {_error}")
-    return ext
+    if t_min == K.T_MIN:
+        return ext
+    with _lock:
+        if t_min not in _variants:
+            from torch.utils.cpp_extension import load
+
+            tag = f"{t_min:.3e}".replace(".", "p").replace("-", "m").replace("+", "")
+            _variants[t_min] = load(name=f"smgs_raster_cpu_{_cpu_tag()}_tmin{tag}",
+                                    sources=[str(_CSRC / s) for s in _SOURCES],
+                                    extra_include_paths=[str(_CSRC)],
+                                    extra_cflags=_CFLAGS + [f"-DSMGS_T_MIN={float(t_min)!r}f"],
+                                    extra_ldflags=["-fopenmp"], verbose=False)
+    return _variants[t_min]
 
 
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background,
                 reg_values, cfg):
-        ext = extension()
+        ext = extension(cfg[-1])
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
-        width, height, use_gef, use_soft, k_max, solved, reg_scale = cfg
+        width, height, use_gef, use_soft, k_max, solved, reg_scale, _ = cfg
         nthreads = torch.get_num_threads()
         (rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, ids, pk, box, toff, tlist, soff,
          spos) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
@@ -131,11 +146,11 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t):
         alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos, bg = ctx.saved_tensors
-        width, height, use_gef, use_soft, k_max, solved, reg_scale = ctx.cfg
+        width, height, use_gef, use_soft, k_max, solved, reg_scale, t_min = ctx.cfg
         n, nch, n_reg, has_alpha, has_soft, has_bg, nthreads = ctx.meta
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
         g_reg = g_reg.contiguous().float() if n_reg else g_rgb.new_empty(0)
-        gm, gc, go, gcol, gd, gal, gbe, gga, grv = extension().backward(
+        gm, gc, go, gcol, gd, gal, gbe, gga, grv = extension(t_min).backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
             spos, bg,
             n, nch, n_reg, width, height, use_gef, use_soft, k_max, solved, reg_scale, nthreads)
@@ -161,6 +176,7 @@ def rasterize_splats_cpu(
     eq15: Eq15 = "solved",
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
+    t_min: float = K.T_MIN,
 ) -> RenderOutput:
     """Composite projected splats on the CPU; see ``smgs.raster.rasterize_splats`` for the arguments.
     float32 CPU tensors only."""
@@ -177,7 +193,8 @@ def rasterize_splats_cpu(
     bg = None if background is None else background.to(torch.float32).reshape(-1).contiguous()
     if bg is not None and bg.numel() != colors.shape[1]:
         raise ValueError(f"background must have {colors.shape[1]} channels, got {bg.numel()}")
-    cfg = (int(width), int(height), use_gef, use_soft, int(k_max), eq15 == "solved", float(reg_depth_scale))
+    cfg = (int(width), int(height), use_gef, use_soft, int(k_max), eq15 == "solved", float(reg_depth_scale),
+           float(t_min))
     rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCPU.apply(
         means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
         depths.contiguous(), f32(alpha) if use_gef else None, f32(beta) if use_soft else None,

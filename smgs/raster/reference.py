@@ -122,6 +122,7 @@ def rasterize_splats_reference(
     eq15: Eq15 = "solved",
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
+    t_min: float = K.T_MIN,
 ) -> RenderOutput:
     """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments."""
     use_gef, use_softmax = mode_flags(mode)
@@ -158,7 +159,7 @@ def rasterize_splats_reference(
         reach = (~done) & (q <= -K.P_MIN) & (a >= K.ALPHA_MIN)
         if not bool(reach.any()):
             continue
-        stop = reach & (T * (1 - a) < K.T_MIN)
+        stop = reach & (T * (1 - a) < t_min)
         done = done | stop
         reach = reach & ~stop
         p = -q

@@ -34,7 +34,10 @@ namespace smgs {
 // Mirrors smgs/raster/constants.py (tests/test_raster_cpu.py checks they agree).
 constexpr float kAlphaMax = 0.99f;            // a = min(0.99, o·kernel)
 constexpr float kAlphaMin = 1.0f / 255.0f;    // a splat with a < 1/255 at a pixel is skipped there
-constexpr float kTMin = 1e-4f;                // stop before T < 1e-4
+#ifndef SMGS_T_MIN
+#define SMGS_T_MIN 1e-4f
+#endif
+constexpr float kTMin = SMGS_T_MIN;           // stop before T < 1e-4 (a variant build may set another)
 constexpr float kQMax = 4.5f;                 // -P_MIN: reach only inside the 3σ ellipse
 constexpr float kExpArgMax = 80.0f;           // -EXP_ARG_MIN: exp(-min(e, 80))
 constexpr float kDecayArgMax = 1e3f;          // DECAY_ARG_MAX: γ|Δd| capped where s = 0 anyway
