@@ -21,7 +21,7 @@ _BACKENDS: dict[str, tuple[str, str]] = {
     "cuda": ("smgs.raster.cuda", "rasterize_splats_cuda"),
 }
 
-_T_MIN_BACKENDS = ("reference", "cpu")
+_T_MIN_BACKENDS = ("reference", "cpu", "cuda")
 """Backends that accept a transmittance threshold other than the default."""
 
 
