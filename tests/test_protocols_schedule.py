@@ -35,3 +35,9 @@ def test_a_dataset_with_its_own_steps_keeps_its_schedule():
     mc = cell_train_config("+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]")
     assert mc["steps"] == 10000
     assert mc["densify"]["refine_stop"] == 10000 and mc["densify"].get("reset_every") is None
+
+
+def test_smoke_keeps_the_unscaled_schedule_so_it_does_not_refine():
+    mc = cell_train_config("+experiment=smoke", "grid.methods=[3dgs]")
+    assert mc["steps"] == 300
+    assert mc["densify"].get("refine_start", 500) >= 300
