@@ -17,12 +17,12 @@ import logging
 import os
 import platform
 import shutil
-import threading
 from pathlib import Path
 
 import torch
 
 from smgs.raster import constants as K
+from smgs.raster.jit import JitExtension
 from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
 
 log = logging.getLogger(__name__)
@@ -36,11 +36,6 @@ _HEADERS = ("splat_math.h",)
 # -ffast-math they keep NaN/inf semantics.
 _CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
            "-fno-trapping-math", "-std=c++17"]
-
-_lock = threading.Lock()
-_ext = None
-_error: str | None = None
-_variants: dict[float, object] = {}   # t_min -> a build with -DSMGS_T_MIN (t_min != K.T_MIN)
 
 
 def _cpu_tag() -> str:
@@ -58,68 +53,33 @@ def _cpu_tag() -> str:
     return hashlib.sha1(ident.encode()).hexdigest()[:10]
 
 
-def _load():
-    """Build (first time) and load the extension; None with the reason logged if it cannot be."""
-    global _ext, _error
-    if _ext is not None or _error is not None:
-        return _ext
-    with _lock:
-        if _ext is not None or _error is not None:
-            return _ext
-        if os.environ.get("SMGS_DISABLE_CPU_BACKEND", "") not in ("", "0"):
-            _error = "disabled by SMGS_DISABLE_CPU_BACKEND"
-        elif shutil.which(os.environ.get("CXX", "c++")) is None:
-            _error = f"no C++ compiler ({os.environ.get('CXX', 'c++')!r} not on PATH)"
-        else:
-            try:
-                from torch.utils.cpp_extension import load, verify_ninja_availability
-
-                verify_ninja_availability()
-                _ext = load(name=f"smgs_raster_cpu_{_cpu_tag()}",
-                            sources=[str(_CSRC / s) for s in _SOURCES],
-                            extra_include_paths=[str(_CSRC)],
-                            extra_cflags=_CFLAGS, extra_ldflags=["-fopenmp"], verbose=False)
-            except Exception as exc:  # noqa: BLE001 - any build failure means "not available"
-                _error = f"{type(exc).__name__}: {str(exc).strip()[-2000:]}"
-        if _error is not None:
-            log.warning("smgs cpu renderer backend unavailable: %s", _error)
-    return _ext
+def _precheck() -> str | None:
+    if os.environ.get("SMGS_DISABLE_CPU_BACKEND", "") not in ("", "0"):
+        return "disabled by SMGS_DISABLE_CPU_BACKEND"
+    if shutil.which(os.environ.get("CXX", "c++")) is None:
+        return f"no C++ compiler ({os.environ.get('CXX', 'c++')!r} not on PATH)"
+    return None
 
 
-def is_available() -> bool:
-    """Whether the compiled CPU backend can be used here (builds it on first call; never raises)."""
-    try:
-        return _load() is not None
-    except Exception as exc:  # noqa: BLE001
-        log.warning("smgs cpu renderer backend unavailable: %s", exc)
-        return False
+def _build(suffix: str, defines: tuple[str, ...]):
+    from torch.utils.cpp_extension import load, verify_ninja_availability
+
+    verify_ninja_availability()
+    return load(name=f"smgs_raster_cpu_{_cpu_tag()}{suffix}", sources=[str(_CSRC / s) for s in _SOURCES],
+                extra_include_paths=[str(_CSRC)], extra_cflags=_CFLAGS + list(defines),
+                extra_ldflags=["-fopenmp"], verbose=False)
 
 
-def unavailable_reason() -> str | None:
-    """Why ``is_available()`` is False (None if it is available or was not tried yet)."""
-    return _error
+_JIT = JitExtension("cpu", _build, _precheck)
+is_available = _JIT.is_available
+unavailable_reason = _JIT.unavailable_reason
 
 
 def extension(t_min: float = K.T_MIN):
     """The loaded extension module (builds it if needed); raises if it cannot be built. A
     ``t_min`` other than the default is compiled in (``-DSMGS_T_MIN``): one more build per value,
     cached like the default one."""
-    ext = _load()
-    if ext is None:
-        raise RuntimeError(f"smgs cpu renderer backend unavailable: {_error}")
-    if t_min == K.T_MIN:
-        return ext
-    with _lock:
-        if t_min not in _variants:
-            from torch.utils.cpp_extension import load
-
-            tag = f"{t_min:.3e}".replace(".", "p").replace("-", "m").replace("+", "")
-            _variants[t_min] = load(name=f"smgs_raster_cpu_{_cpu_tag()}_tmin{tag}",
-                                    sources=[str(_CSRC / s) for s in _SOURCES],
-                                    extra_include_paths=[str(_CSRC)],
-                                    extra_cflags=_CFLAGS + [f"-DSMGS_T_MIN={float(t_min)!r}f"],
-                                    extra_ldflags=["-fopenmp"], verbose=False)
-    return _variants[t_min]
+    return _JIT.module(t_min)
 
 
 class _RasterizeCPU(torch.autograd.Function):

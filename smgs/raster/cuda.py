@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import logging
 import os
-import threading
 from pathlib import Path
 
 import torch
 
 from smgs.raster import constants as K
+from smgs.raster.jit import JitExtension
 from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
 
 log = logging.getLogger(__name__)
@@ -38,11 +38,6 @@ CFLAGS = ["-O3"]
 # Bound of the backward's softmax-head scratch (k_max entries per pixel of the tiles in flight);
 # larger frames are processed in chunks of tiles, so memory never grows with pixels x k_max.
 HEAD_BUDGET_BYTES = 512 * 2**20
-
-_lock = threading.Lock()
-_ext = None
-_error: str | None = None
-_variants: dict[float, object] = {}   # t_min -> a build with -DSMGS_T_MIN (t_min != K.T_MIN)
 
 
 def _why_not_buildable() -> str | None:
@@ -69,64 +64,25 @@ def _arch_tag() -> str:
 
 
 def _build(suffix: str = "", defines: tuple[str, ...] = ()):
-    from torch.utils.cpp_extension import load
+    from torch.utils.cpp_extension import load, verify_ninja_availability
 
+    verify_ninja_availability()
     return load(name=f"smgs_raster_cuda_sm{_arch_tag()}{suffix}", sources=[str(_CSRC / s) for s in SOURCES],
                 extra_include_paths=[str(_CSRC)], extra_cflags=CFLAGS + list(defines),
                 extra_cuda_cflags=CUDA_CFLAGS + list(defines), verbose=False)
 
 
-def _load():
-    """Build (first time) and load the extension; None with the reason logged if it cannot be."""
-    global _ext, _error
-    if _ext is not None or _error is not None:
-        return _ext
-    with _lock:
-        if _ext is not None or _error is not None:
-            return _ext
-        _error = _why_not_buildable()
-        expected = _error is not None   # no CUDA here: not worth a warning
-        if _error is None:
-            try:
-                from torch.utils.cpp_extension import load, verify_ninja_availability
-
-                verify_ninja_availability()
-                _ext = _build()
-            except Exception as exc:  # noqa: BLE001 - any build failure means "not available"
-                _error = f"{type(exc).__name__}: {str(exc).strip()[-2000:]}"
-        if _error is not None:
-            log.log(logging.INFO if expected else logging.WARNING, "smgs cuda renderer backend unavailable: %s", _error)
-    return _ext
-
-
-def is_available() -> bool:
-    """Whether the CUDA backend can be used here (builds it on first call; never raises)."""
-    try:
-        return _load() is not None
-    except Exception as exc:  # noqa: BLE001
-        log.warning("smgs cuda renderer backend unavailable: %s", exc)
-        return False
-
-
-def unavailable_reason() -> str | None:
-    """Why ``is_available()`` is False (None if it is available or was not tried yet)."""
-    return _error
+# no CUDA here is the common case, not worth a warning: quiet_precheck
+_JIT = JitExtension("cuda", _build, _why_not_buildable, quiet_precheck=True)
+is_available = _JIT.is_available
+unavailable_reason = _JIT.unavailable_reason
 
 
 def extension(t_min: float = K.T_MIN):
     """The loaded extension module (builds it if needed); raises if it cannot be built. A ``t_min``
     other than the default is compiled in (``-DSMGS_T_MIN``, as the CPU backend does): one more
     build per value, cached like the default one."""
-    ext = _load()
-    if ext is None:
-        raise RuntimeError(f"smgs cuda renderer backend unavailable: {_error}")
-    if t_min == K.T_MIN:
-        return ext
-    with _lock:
-        if t_min not in _variants:
-            tag = f"{t_min:.3e}".replace(".", "p").replace("-", "m").replace("+", "")
-            _variants[t_min] = _build(f"_tmin{tag}", (f"-DSMGS_T_MIN={float(t_min)!r}f",))
-    return _variants[t_min]
+    return _JIT.module(t_min)
 
 
 class _RasterizeCUDA(torch.autograd.Function):
