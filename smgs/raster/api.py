@@ -13,16 +13,13 @@ from smgs.raster.projection import project_gaussians
 from smgs.raster.sh import eval_sh
 from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
 
-# name -> (module, function, availability check). Imported lazily so that listing backends never
-# compiles or loads a kernel.
+# name -> (module, function); every backend takes the same arguments, t_min included. Imported
+# lazily so that listing backends never compiles or loads a kernel.
 _BACKENDS: dict[str, tuple[str, str]] = {
     "reference": ("smgs.raster.reference", "rasterize_splats_reference"),
     "cpu": ("smgs.raster.cpu", "rasterize_splats_cpu"),
     "cuda": ("smgs.raster.cuda", "rasterize_splats_cuda"),
 }
-
-_T_MIN_BACKENDS = ("reference", "cpu", "cuda")
-"""Backends that accept a transmittance threshold other than the default."""
 
 
 def _load_backend(name: str) -> Callable[..., RenderOutput]:
@@ -130,15 +127,9 @@ def rasterize_splats(
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     name = resolve_backend(backend, means2d.device, means2d.dtype)
     fn = _load_backend(name)
-    extra = {}
-    if t_min != K.T_MIN:
-        if name not in _T_MIN_BACKENDS:
-            raise ValueError(f"renderer backend {name!r} has the 3DGS t_min = {K.T_MIN} built in; "
-                             f"t_min = {t_min} needs one of {', '.join(_T_MIN_BACKENDS)}")
-        extra["t_min"] = t_min
     return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
               mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-              reg_depth_scale=reg_depth_scale, **extra)
+              reg_depth_scale=reg_depth_scale, t_min=t_min)
 
 
 def rasterize(
