@@ -1,8 +1,9 @@
 """The renderer's transmittance threshold ``t_min`` (default: the 3DGS rule, stop before T < 1e-4).
 
 On the 2D patterns it decides whether saturated Softmax-GS splats can compete at all
-(docs/table1): two splats at the a = 0.99 clamp leave T = 0.01·0.01, below 1e-4 in float32, so
-the 3DGS rule drops the second one even where the softmax would give it the pixel.
+(docs/table1): two splats at the a = 0.99 clamp leave T = 0.01·0.01 = 1e-4, which float32 rounds
+to 9.99998e-5; tested without slack (as 3DGS does), the second splat is dropped even where the
+softmax would give it the pixel, and float32 and float64 disagree (constants.T_STOP_SLACK).
 """
 
 import shutil
@@ -18,32 +19,53 @@ from smgs.data.patterns import pattern_scene
 KEYS = ["means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma"]
 
 
-def two_saturated_splats():
-    """Pixel (0, 0) of a 1x1 image: a front splat F (red) 4 px from its centre, a back splat B
-    (blue) at its centre, both at the a = 0.99 clamp (wide, opacity 1), 1e-3 apart in depth (the
-    softmax acts: β(p_B - p_F) = 1000·0.008 = 8)."""
-    return dict(means2d=torch.tensor([[4.5, 0.5], [0.5, 0.5]]), conics=torch.tensor([[1e-3, 0.0, 1e-3]] * 2),
-                opacities=torch.tensor([1.0, 1.0]), colors=torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-                depths=torch.tensor([1.0, 1.001]), alpha=torch.tensor([1.0, 1.0]), beta=torch.tensor([1000.0, 1000.0]),
-                gamma=torch.tensor([1.0, 1.0]))
+def saturated_splats(n: int = 2, dtype=torch.float32):
+    """Pixel (0, 0) of a 1x1 image: a front splat F (red) 4 px from its centre, then back splats B
+    (blue, then green) at their centres, all at the a = 0.99 clamp (wide, opacity 1), 1e-3 apart in
+    depth (the softmax acts: β(p_B - p_F) = 1000·0.008 = 8)."""
+    sc = dict(means2d=torch.tensor([[4.5, 0.5], [0.5, 0.5], [0.5, 0.5]]), conics=torch.tensor([[1e-3, 0.0, 1e-3]] * 3),
+              opacities=torch.tensor([1.0, 1.0, 1.0]),
+              colors=torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
+              depths=torch.tensor([1.0, 1.001, 1.002]), alpha=torch.ones(3), beta=torch.full((3,), 1000.0),
+              gamma=torch.ones(3))
+    return {k: v[:n].to(dtype) for k, v in sc.items()}
 
 
 def render(sc, backend, **kw):
     return rasterize_splats(*[sc[k] for k in KEYS], 1, 1, mode="softmax_gs", backend=backend, **kw)
 
 
-def test_3dgs_rule_drops_a_splat_the_softmax_would_pick():
-    sc = two_saturated_splats()
-    default = render(sc, "reference").rgb[0, 0]
-    off = render(sc, "reference", t_min=0.0).rgb[0, 0]
-    assert torch.allclose(default, torch.tensor([0.99, 0.0, 0.0]), atol=1e-6)   # F alone: B is cut
-    assert off[2] > 0.9 and off[0] < 0.1                                       # B wins the softmax
-    assert render(sc, "reference", t_min=0.0).stats.n_contrib.item() == 2
-    assert render(sc, "reference").stats.n_contrib.item() == 1
+def backends():
+    return ["reference"] + (["cpu"] if backend_available("cpu", "cpu") else [])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_two_saturated_splats_compete_under_the_3dgs_rule(dtype):
+    """T = 0.01·0.01 is exactly 1e-4, not below it: the back splat is composited (and wins the
+    softmax) in float32 as in float64; the same test without slack drops it in float32 only."""
+    sc = saturated_splats(2, dtype)
+    for backend in backends() if dtype == torch.float32 else ["reference"]:
+        out = render(sc, backend)
+        assert out.stats.n_contrib.item() == 2, backend
+        assert out.rgb[0, 0, 2] > 0.9 and out.rgb[0, 0, 0] < 0.1, backend
+    a = torch.tensor(K.ALPHA_MAX, dtype=dtype)
+    unslacked_drop = bool((1 - a) * (1 - a) < K.T_MIN)
+    assert unslacked_drop == (dtype == torch.float32)   # the rounding the slack absorbs
+
+
+def test_3dgs_rule_drops_the_third_saturated_splat():
+    sc = saturated_splats(3)
+    for backend in backends():
+        default = render(sc, backend)
+        off = render(sc, backend, t_min=0.0)
+        assert default.stats.n_contrib.item() == 2, backend   # T would fall to 1e-6: the pixel stops
+        assert off.stats.n_contrib.item() == 3, backend
+        assert default.rgb[0, 0, 1] == 0, backend
+        assert off.rgb[0, 0, 1] > 0.4, backend   # with the stop off, the third shares the pixel with B (equal p)
 
 
 def test_t_min_is_validated_and_refused_where_not_supported():
-    sc = two_saturated_splats()
+    sc = saturated_splats()
     with pytest.raises(ValueError, match="t_min must be in"):
         render(sc, "reference", t_min=-1.0)
     if not backend_available("cuda", "cuda"):

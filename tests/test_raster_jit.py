@@ -38,4 +38,4 @@ def test_one_build_per_threshold():
     assert jit.module(K.T_MIN) is default
     zero = jit.module(0.0)
     assert jit.module(0.0) is zero and zero is not default
-    assert built == [("", ()), ("_tmin0p000e00", ("-DSMGS_T_MIN=0.0f",))]
+    assert built == [("", ()), ("_tmin0p000e00", ("-DSMGS_T_MIN=0.0",))]

@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 def t_min_define(t_min: float) -> tuple[str, str]:
     """(name suffix, compiler define) of the build for a non-default early-stop threshold."""
     tag = f"{t_min:.3e}".replace(".", "p").replace("-", "m").replace("+", "")
-    return f"_tmin{tag}", f"-DSMGS_T_MIN={float(t_min)!r}f"
+    return f"_tmin{tag}", f"-DSMGS_T_MIN={float(t_min)!r}"
 
 
 @dataclass

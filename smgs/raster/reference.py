@@ -159,7 +159,7 @@ def rasterize_splats_reference(
         reach = (~done) & (q <= -K.P_MIN) & (a >= K.ALPHA_MIN)
         if not bool(reach.any()):
             continue
-        stop = reach & (T * (1 - a) < t_min)
+        stop = reach & (T * (1 - a) < t_min * (1 - K.T_STOP_SLACK))
         done = done | stop
         reach = reach & ~stop
         p = -q

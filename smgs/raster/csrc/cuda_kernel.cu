@@ -231,7 +231,7 @@ __global__ void __launch_bounds__(kBlock) fwd_kernel(Scene sc, FwdOut o, int B) 
       if (!(ab.a >= kAlphaMin)) continue;
       const float a = ab.a;
       const float T0 = T * (1.f - a);
-      if (T0 < kTMin) {  // 3DGS: not composited, the pixel is done
+      if (T0 < kTStop) {  // 3DGS: not composited, the pixel is done
         done = true;
         break;
       }
@@ -646,9 +646,10 @@ int backward(const Scene& sc, const BwdIn& in, const BwdWork& work, void* stream
 
 const char* error_string(int code) { return cudaGetErrorString(cudaError_t(code)); }
 
-void constants(double* out8) {
-  const double v[8] = {kAlphaMax, kAlphaMin, kTMin, kQMax, kExpArgMax, kDecayArgMax, kPixelCenter, double(kTileSize)};
-  for (int i = 0; i < 8; ++i) out8[i] = v[i];
+void constants(double* out9) {
+  const double v[9] = {kAlphaMax, kAlphaMin, kTMin, kQMax, kExpArgMax, kDecayArgMax, kPixelCenter, double(kTileSize),
+                       kTStop};
+  for (int i = 0; i < 9; ++i) out9[i] = v[i];
 }
 
 }  // namespace cuda

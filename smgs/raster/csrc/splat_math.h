@@ -35,9 +35,11 @@ namespace smgs {
 constexpr float kAlphaMax = 0.99f;            // a = min(0.99, o·kernel)
 constexpr float kAlphaMin = 1.0f / 255.0f;    // a splat with a < 1/255 at a pixel is skipped there
 #ifndef SMGS_T_MIN
-#define SMGS_T_MIN 1e-4f
+#define SMGS_T_MIN 1e-4                       // a double literal: kTStop is formed in double, as in Python
 #endif
-constexpr float kTMin = SMGS_T_MIN;           // stop before T < 1e-4 (a variant build may set another)
+constexpr float kTMin = float(SMGS_T_MIN);    // stop before T < 1e-4 (a variant build may set another)
+constexpr double kTStopSlack = 1e-5;          // T_STOP_SLACK: float32 rounding at the a = 0.99 clamp
+constexpr float kTStop = float(SMGS_T_MIN * (1.0 - kTStopSlack));  // the threshold actually tested
 constexpr float kQMax = 4.5f;                 // -P_MIN: reach only inside the 3σ ellipse
 constexpr float kExpArgMax = 80.0f;           // -EXP_ARG_MIN: exp(-min(e, 80))
 constexpr float kDecayArgMax = 1e3f;          // DECAY_ARG_MAX: γ|Δd| capped where s = 0 anyway
