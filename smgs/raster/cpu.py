@@ -34,11 +34,11 @@ _HEADERS = ("splat_math.h",)
 # reach tests (q <= 4.5, a >= 1/255, T < 1e-4) see the same numbers; FMAs are written explicitly
 # where wanted. -fno-math-errno / -fno-trapping-math only let sqrt and selects vectorise: unlike
 # -ffast-math they keep NaN/inf semantics.
-_CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
+CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
            "-fno-trapping-math", "-std=c++17"]
 
 
-def _cpu_tag() -> str:
+def cpu_tag() -> str:
     """-march=native code must not be loaded on another CPU kind sharing the cache directory."""
     ident = platform.machine()
     try:
@@ -53,7 +53,7 @@ def _cpu_tag() -> str:
     return hashlib.sha1(ident.encode()).hexdigest()[:10]
 
 
-def _precheck() -> str | None:
+def precheck() -> str | None:
     if os.environ.get("SMGS_DISABLE_CPU_BACKEND", "") not in ("", "0"):
         return "disabled by SMGS_DISABLE_CPU_BACKEND"
     if shutil.which(os.environ.get("CXX", "c++")) is None:
@@ -65,12 +65,12 @@ def _build(suffix: str, defines: tuple[str, ...]):
     from torch.utils.cpp_extension import load, verify_ninja_availability
 
     verify_ninja_availability()
-    return load(name=f"smgs_raster_cpu_{_cpu_tag()}{suffix}", sources=[str(_CSRC / s) for s in _SOURCES],
-                extra_include_paths=[str(_CSRC)], extra_cflags=_CFLAGS + list(defines),
+    return load(name=f"smgs_raster_cpu_{cpu_tag()}{suffix}", sources=[str(_CSRC / s) for s in _SOURCES],
+                extra_include_paths=[str(_CSRC)], extra_cflags=CFLAGS + list(defines),
                 extra_ldflags=["-fopenmp"], verbose=False)
 
 
-_JIT = JitExtension("cpu", _build, _precheck)
+_JIT = JitExtension("cpu", _build, precheck)
 is_available = _JIT.is_available
 unavailable_reason = _JIT.unavailable_reason
 

@@ -33,6 +33,7 @@ class JitExtension:
     build: Callable[[str, tuple[str, ...]], Any]
     precheck: Callable[[], str | None]
     quiet_precheck: bool = False
+    what: str = "renderer backend"
     _ext: Any = field(default=None, init=False, repr=False)
     _error: str | None = field(default=None, init=False)
     _variants: dict[float, Any] = field(default_factory=dict, init=False, repr=False)
@@ -54,7 +55,7 @@ class JitExtension:
                     self._error = f"{type(exc).__name__}: {str(exc).strip()[-2000:]}"
             if self._error is not None:
                 log.log(logging.INFO if quiet else logging.WARNING,
-                        "smgs %s renderer backend unavailable: %s", self.kind, self._error)
+                        "smgs %s %s unavailable: %s", self.kind, self.what, self._error)
         return self._ext
 
     def is_available(self) -> bool:
@@ -62,7 +63,7 @@ class JitExtension:
         try:
             return self.load() is not None
         except Exception as exc:  # noqa: BLE001
-            log.warning("smgs %s renderer backend unavailable: %s", self.kind, exc)
+            log.warning("smgs %s %s unavailable: %s", self.kind, self.what, exc)
             return False
 
     def unavailable_reason(self) -> str | None:
@@ -73,7 +74,7 @@ class JitExtension:
         """The loaded module for this threshold (builds it if needed); raises if it cannot be built."""
         ext = self.load()
         if ext is None:
-            raise RuntimeError(f"smgs {self.kind} renderer backend unavailable: {self._error}")
+            raise RuntimeError(f"smgs {self.kind} {self.what} unavailable: {self._error}")
         if t_min == K.T_MIN:
             return ext
         with self._lock:

@@ -13,7 +13,6 @@ import time
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
@@ -22,7 +21,8 @@ from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
-from smgs.train.loss import SSIMLoss, l1, ray_variance
+from smgs.train.image_loss import PhotometricLoss
+from smgs.train.loss import ray_variance
 from smgs.train.optim import GaussianOptimizer
 from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
 
@@ -93,7 +93,7 @@ class Trainer:
         if not self.reg_on:
             self.plan.append("beta/gamma variance regulariser: off" + (" (no softmax)" if not self.use_softmax else ""))
         self.plan.append(f"hyperparameters: {cfg.optim.name}")
-        self.ssim = SSIMLoss()
+        self.photometric = PhotometricLoss(cfg.loss.lambda_dssim)
         self._targets = [v.rgb for v in scene.train]
         self._stack: list[int] = []
         self.step_count = 0          # steps completed
@@ -208,10 +208,8 @@ class Trainer:
             means2d.retain_grad()
         t1 = time.perf_counter()
         rgb = out.rgb
-        l1v = l1(rgb, target)
-        ssim_v = self.ssim(rgb, target)
-        lam = cfg.loss.lambda_dssim
-        loss = (1 - lam) * l1v + lam * (1 - ssim_v)
+        parts = self.photometric(rgb, target)   # (1 − λ)·L1 + λ·(1 − SSIM), with L1, SSIM and MSE
+        loss = parts.total
         var_b = var_g = None
         if self.reg_on and out.reg is not None:
             var_b, var_g = ray_variance(out.reg)
@@ -246,8 +244,8 @@ class Trainer:
                             ("strategy", t4, t5)):
                 self.timings[k] += b - a
         self.step_count += 1
-        mse = float(F.mse_loss(rgb.detach(), target))
-        logs = {"loss": loss_v, "l1": float(l1v.detach()), "ssim": float(ssim_v.detach()),
+        mse = parts.mse
+        logs = {"loss": loss_v, "l1": parts.l1, "ssim": parts.ssim,
                 "psnr": -10 * math.log10(mse) if mse > 0 else math.inf,
                 "num_gaussians": float(len(g)), "lr_means": lr}
         if var_b is not None:

@@ -1,0 +1,106 @@
+"""The photometric training loss (1 − λ)·L1 + λ·(1 − SSIM), fused on CPU.
+
+``PhotometricLoss`` computes the loss and, in the same call, its gradient with respect to the
+render: on float32 CPU tensors in one compiled pass (``csrc/image_loss.cpp``, built just in time
+like the CPU renderer), elsewhere with the PyTorch path of ``smgs.train.loss`` (L1 and the fast
+SSIM). Both follow ``smgs.metrics.ssim`` (window and constants are passed from there), and
+tests/test_train_image_loss.py checks the compiled pass against the metric in value and gradient.
+It also returns the MSE, so the training PSNR costs no extra pass.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
+from smgs.raster.cpu import CFLAGS, cpu_tag, precheck
+from smgs.raster.jit import JitExtension
+from smgs.train.loss import SSIMLoss
+
+log = logging.getLogger(__name__)
+
+_CSRC = Path(__file__).parent / "csrc"
+
+
+def _build(suffix: str, defines: tuple[str, ...]):
+    from torch.utils.cpp_extension import load, verify_ninja_availability
+
+    verify_ninja_availability()
+    return load(name=f"smgs_image_loss_cpu_{cpu_tag()}{suffix}", sources=[str(_CSRC / "image_loss.cpp")],
+                extra_cflags=CFLAGS + list(defines), extra_ldflags=["-fopenmp"], verbose=False)
+
+
+_JIT = JitExtension("cpu", _build, precheck, what="training-loss kernel")
+
+
+def fused_available() -> bool:
+    """Whether the compiled CPU loss can be used here (builds it on first call; never raises)."""
+    return _JIT.is_available()
+
+
+@dataclass
+class LossParts:
+    """The loss (a differentiable scalar tensor) and its parts as plain floats, for logs."""
+
+    total: torch.Tensor
+    l1: float
+    ssim: float
+    mse: float
+
+
+class _PhotometricCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, y, window, lam):  # type: ignore[override]
+        stats, grad = _JIT.module().forward(x, y, window, lam, C1, C2, ctx.needs_input_grad[0])
+        ctx.save_for_backward(grad)
+        ctx.mark_non_differentiable(stats)
+        return x.new_tensor(float(stats[0])), stats
+
+    @staticmethod
+    def backward(ctx, g, _g_stats):  # type: ignore[override]
+        (grad,) = ctx.saved_tensors
+        return grad * g, None, None, None
+
+
+class PhotometricLoss:
+    """(1 − λ)·L1(x, y) + λ·(1 − SSIM(x, y)) of a render x [H, W, C] against a fixed target y.
+
+    ``fused``: None uses the compiled CPU pass wherever it applies (float32 CPU tensors, the
+    extension available), True requires it, False always uses the PyTorch path."""
+
+    def __init__(self, lambda_dssim: float = 0.2, fused: bool | None = None) -> None:
+        self.lam = float(lambda_dssim)
+        self.fused = fused
+        self._ssim = SSIMLoss()
+        self._window = gaussian_kernel_1d().to(torch.float32)
+
+    def _use_fused(self, x: torch.Tensor) -> bool:
+        if self.fused is False:
+            return False
+        ok = x.device.type == "cpu" and x.dtype == torch.float32
+        if self.fused is True:
+            if not ok:
+                raise ValueError(f"the fused loss takes float32 CPU images, not {x.dtype} on {x.device}")
+            if not fused_available():
+                raise RuntimeError(f"the fused loss is unavailable: {_JIT.unavailable_reason()}")
+            return True
+        return ok and fused_available()
+
+    def __call__(self, x: torch.Tensor, y: torch.Tensor) -> LossParts:
+        if x.shape != y.shape or x.dim() != 3:
+            raise ValueError(f"render and target must be [H, W, C] of one shape, got {tuple(x.shape)} "
+                             f"and {tuple(y.shape)}")
+        if self._use_fused(x):
+            total, stats = _PhotometricCPU.apply(x, y.detach().to(x.dtype), self._window, self.lam)
+            l1v, ssim_v, mse = (float(v) for v in stats[1:])
+            return LossParts(total, l1v, ssim_v, mse)
+        l1v = F.l1_loss(x, y)
+        ssim_v = self._ssim(x, y)
+        total = (1 - self.lam) * l1v + self.lam * (1 - ssim_v)
+        mse = float(F.mse_loss(x.detach(), y))
+        return LossParts(total, float(l1v.detach()), float(ssim_v.detach()), mse)
