@@ -44,7 +44,7 @@ def test_compiled_constants_mirror_python():
 
     got = cuda.extension().constants()
     want = [K.ALPHA_MAX, K.ALPHA_MIN, K.T_MIN, -K.P_MIN, -K.EXP_ARG_MIN, K.DECAY_ARG_MAX, K.PIXEL_CENTER,
-            K.TILE_SIZE, K.T_MIN * (1 - K.T_STOP_SLACK)]
+            K.TILE_SIZE, K.T_MIN * (1 - K.T_STOP_SLACK), K.TINY]
     assert len(got) == len(want)
     for g, w in zip(got, want):
         assert g == pytest.approx(w, rel=1e-7)   # compiled as float32

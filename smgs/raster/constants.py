@@ -12,8 +12,12 @@ ALPHA_MIN = 1.0 / 255.0
 
 T_MIN = 1e-4
 """A splat whose vanilla update would bring the transmittance below this is not composited, and
-the pixel stops (3DGS ``test_T < 0.0001``). The default of the renderer's ``t_min`` option; 0 turns
-the early stop off. The test is made with the slack below, see ``T_STOP_SLACK``."""
+the pixel stops (3DGS ``test_T < 0.0001``): in every mode for vanilla steps, and so in softmax
+modes only past the first k_max splats of the pixel, never inside the softmax head. The stop is
+sound where a later splat can add at most T to the pixel; under softmax competition a later splat
+can take the pixel from those before it (Algorithm 1 of the paper has no stop), and with the stop
+saturated Softmax-GS splats could not compete at all (Table 1 lost up to 10 dB, docs/table1). The
+default of the renderer's ``t_min`` option; 0 turns the stop off. Tested with ``T_STOP_SLACK``."""
 
 T_STOP_SLACK = 1e-5
 """The early stop fires where T·(1 − a) < t_min·(1 − 1e-5), not at t_min itself. Two splats at the
@@ -25,6 +29,11 @@ have won the pixel, and saturated Softmax-GS splats could never compete (Table 1
 docs/table1). A relative slack of 1e-5 covers the rounding of a few clamped factors (each at most
 ~6e-6 relative) and makes float32 and float64 agree at the clamp; a third saturated splat
 (T = 1e-6) is still dropped."""
+
+TINY = 1.1754943508222875e-38
+"""The smallest normal float32. In a softmax step, where ã_cur's denominator â_cur + â_past·T_orig
+falls below it (T_orig and â_cur both out of the float32 range), ã_cur := 0: ã_past ≈ 1 already
+closes the pixel (0/0 otherwise, and rcp14 of a denormal is inf). Every backend and dtype uses it."""
 
 EPS2D = 0.3
 """Added to the diagonal of every projected 2D covariance (px², the 3DGS low-pass filter)."""

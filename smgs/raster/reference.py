@@ -64,10 +64,13 @@ def softmax_step(T, A, C, d_past, p_past, a, p, d, c, beta, gamma, eq15: str):
     h_past = w_past * A                   # line 12, â_past
     S = h_past + h_cur
     t_past = h_past * U / S               # eq. (15), ã_past
-    if eq15 == "solved":
-        t_cur = h_cur * U / (h_cur + h_past * T0)
-    else:                                 # line 14 as printed: the updated ã_past
-        t_cur = h_cur * U / (h_cur + t_past * T0)
+    # solved: the un-updated â_past; printed (line 14): the updated ã_past
+    E = h_cur + (h_past if eq15 == "solved" else t_past) * T0
+    # E leaves the float32 normal range only where T0 and w_cur both did (deep behind saturated
+    # splats, β·Δp large): ã_past = U ≈ 1 already closes the pixel, and ã_cur := 0 (the limit
+    # w_cur -> 0), not 0/0. The same threshold in every backend and dtype (constants.TINY).
+    live = E >= K.TINY
+    t_cur = torch.where(live, h_cur * U / torch.where(live, E, torch.ones_like(E)), torch.zeros_like(E))
     dd = d - d_past
     # line 15, s = exp(-γ|Δd|), with γ|Δd| := 0 at Δd = 0 (γ may be inf) and := G_MAX where s
     # underflows to 0; γ is zeroed in the unused branch so no inf·0 reaches the gradients.
@@ -160,6 +163,8 @@ def rasterize_splats_reference(
         if not bool(reach.any()):
             continue
         stop = reach & (T * (1 - a) < t_min * (1 - K.T_STOP_SLACK))
+        if use_softmax:   # the stop holds for vanilla steps only: in the head a later splat can win
+            stop = stop & (count >= k_max)
         done = done | stop
         reach = reach & ~stop
         p = -q

@@ -623,7 +623,10 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
       reach[v] = mand(reach[v], mnot(done[v]));
       const VF a = ab[v].a;
       const VF T0 = T[v] * (VF(1.f) - a);
-      const VM stop = mand(reach[v], T0 < VF(kTStop));  // 3DGS: not composited, the pixel is done
+      // 3DGS: not composited, the pixel is done. Only where the step is vanilla: inside the softmax
+      // head a later splat can take the pixel from those before it (constants.T_MIN).
+      VM stop = mand(reach[v], T0 < VF(kTStop));
+      if (SOFT) stop = mand(stop, mnot(cnt[v] < kmaxf));
       done[v] = mor(done[v], stop);
       const VM rv = mand(reach[v], mnot(stop));
       const VM head = need_head ? mand(rv, cnt[v] < kmaxf) : rv;
@@ -1204,7 +1207,7 @@ std::vector<torch::Tensor> backward(torch::Tensor g_rgb, torch::Tensor g_alpha, 
 
 // Constants as compiled, for the test that they mirror smgs/raster/constants.py.
 std::vector<double> constants() {
-  return {kAlphaMax, kAlphaMin, kTMin, kQMax, kExpArgMax, kDecayArgMax, kPixelCenter, double(kTileSize), kTStop};
+  return {kAlphaMax, kAlphaMin, kTMin, kQMax, kExpArgMax, kDecayArgMax, kPixelCenter, double(kTileSize), kTStop, kTiny};
 }
 
 bool simd_avx512() {

@@ -207,7 +207,7 @@ std::vector<at::Tensor> backward_torch(at::Tensor g_rgb, at::Tensor g_alpha, at:
 }
 
 std::vector<double> compiled_constants() {
-  std::vector<double> v(9);
+  std::vector<double> v(10);
   constants(v.data());
   return v;
 }

@@ -231,7 +231,9 @@ __global__ void __launch_bounds__(kBlock) fwd_kernel(Scene sc, FwdOut o, int B) 
       if (!(ab.a >= kAlphaMin)) continue;
       const float a = ab.a;
       const float T0 = T * (1.f - a);
-      if (T0 < kTStop) {  // 3DGS: not composited, the pixel is done
+      // 3DGS: not composited, the pixel is done. Only where the step is vanilla: inside the softmax
+      // head a later splat can take the pixel from those before it (constants.T_MIN).
+      if (T0 < kTStop && !(SOFT && cnt < sc.kmax)) {
         done = true;
         break;
       }
@@ -646,10 +648,10 @@ int backward(const Scene& sc, const BwdIn& in, const BwdWork& work, void* stream
 
 const char* error_string(int code) { return cudaGetErrorString(cudaError_t(code)); }
 
-void constants(double* out9) {
-  const double v[9] = {kAlphaMax, kAlphaMin, kTMin, kQMax, kExpArgMax, kDecayArgMax, kPixelCenter, double(kTileSize),
-                       kTStop};
-  for (int i = 0; i < 9; ++i) out9[i] = v[i];
+void constants(double* out10) {
+  const double v[10] = {kAlphaMax, kAlphaMin, kTMin, kQMax, kExpArgMax, kDecayArgMax, kPixelCenter, double(kTileSize),
+                        kTStop, kTiny};
+  for (int i = 0; i < 10; ++i) out10[i] = v[i];
 }
 
 }  // namespace cuda

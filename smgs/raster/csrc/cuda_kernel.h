@@ -88,7 +88,7 @@ int backward(const Scene& sc, const BwdIn& in, const BwdWork& work, void* stream
 
 const char* error_string(int code);
 // Numeric conventions as compiled into the device code (see smgs/raster/constants.py).
-void constants(double* out9);
+void constants(double* out10);
 
 }  // namespace cuda
 }  // namespace smgs

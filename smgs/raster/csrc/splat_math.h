@@ -44,6 +44,7 @@ constexpr float kQMax = 4.5f;                 // -P_MIN: reach only inside the 3
 constexpr float kExpArgMax = 80.0f;           // -EXP_ARG_MIN: exp(-min(e, 80))
 constexpr float kDecayArgMax = 1e3f;          // DECAY_ARG_MAX: γ|Δd| capped where s = 0 anyway
 constexpr float kPixelCenter = 0.5f;
+constexpr float kTiny = 1.17549435e-38f;       // TINY: the smallest normal float32
 constexpr int kTileSize = 16;
 
 // ---- scalar lane primitives ---------------------------------------------------------------------
@@ -216,7 +217,11 @@ SMGS_HD inline SoftFwd<V> softmax_fwd(V T, V A, V dp, V pp, V a, V p, float d, f
   f.t_past = f.h_past * f.U * f.iS;           // eq. (15), ã_past
   f.X = solved ? f.h_past : f.t_past;         // solved: un-updated â_past; printed: line 14
   f.E = f.h_cur + f.X * f.T0;
-  f.iE = vrcp(f.E);
+  // E falls below the float32 normal range only where T0 did and the current splat's softmax weight
+  // did too (β·Δp beyond ~90, behind ~19 saturated splats): 0/0 at E = 0, and rcp14 of a denormal
+  // is inf. There ã_past = U ≈ 1 already closes the pixel, so ã_cur := 0 (the limit as w_cur -> 0
+  // first); iE = 0 also zeroes the adjoint of this step. Every backend uses this threshold.
+  f.iE = sel(f.E >= V(kTiny), vrcp(f.E), zero);
   f.t_cur = f.h_cur * f.U * f.iE;
   f.dd = V(d) - dp;                           // line 15, γ|Δd| := 0 at Δd = 0, capped where s = 0
   f.ad = vabs(f.dd);
