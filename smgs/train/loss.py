@@ -5,7 +5,9 @@ from there) computed faster for training: the separable window is applied as two
 products (the 11×11 depthwise conv2d costs ~5-10 ms forward+backward at 128² on one core; the band
 products ~0.5 ms per blur of 9 channels), the backward is analytic (the window is symmetric, so
 the blur is its own adjoint), and the target's statistics are computed once per image. Tests
-check it against ``smgs.metrics.ssim`` in value and gradient.
+check it against ``smgs.metrics.ssim`` in value and gradient. On float32 CPU tensors the trainer
+uses the compiled pass of ``smgs.train.image_loss`` instead (same definition, one pass, ~3× faster
+at 128²); this module is its fallback on other devices and dtypes.
 """
 
 from __future__ import annotations
