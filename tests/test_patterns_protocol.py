@@ -61,6 +61,9 @@ def test_ordering_check():
             for m, v in (("softmax_gs", 30), ("gef_only", 25), ("softmax_only", 20), ("3dgs", 21))]
     (c,) = ordering_checks(rows)
     assert c["softmax_gs_best"] and c["gef_over_rest"] and c["order"].startswith("softmax_gs > gef_only")
+    assert c["softmax_gs_vs_paper"] is None                       # no paper value in these rows
+    rows[0]["paper_psnr"] = 31.25
+    assert ordering_checks(rows)[0]["softmax_gs_vs_paper"] == -1.25
     rows[1]["psnr_mean"] = 20.5
     assert not ordering_checks(rows)[0]["gef_over_rest"]
     rows.append(dict(pattern="p", n_gaussians=4, method="softmax_gs [t_min=0]", psnr_mean=19))

@@ -65,7 +65,7 @@ class GaussianConfig:
     # isotropic scale `flat_scale`. Our choice (docs/table1): small splats that barely overlap
     # (centres ±0.15, about the quadrant centroids; σ = 0.05). With the earlier σ = 0.1 at
     # spacing 0.05 one splat grew in front of the others and hid them (circle4 Softmax-GS 16.4 dB
-    # vs 18.3; with t_min = 0, 25.1 vs 28.1).
+    # vs 18.3 under the earlier stop rule; with no stop in the softmax head, 25.1 vs 28.1).
     n_flat: int = 4
     flat_depth: float = 1.0
     flat_spacing: float = 0.3
@@ -201,8 +201,9 @@ def densify_config(budget: str = "full", **overrides: Any) -> DensifyConfig:
 class TrainConfig:
     """Everything one run of the splatting trainer needs. ``mode`` is the renderer mode
     (3dgs / gef_only / softmax_only / softmax_gs). ``t_min``: the renderer's early-stop threshold
-    on the transmittance (default 1e-4, the 3DGS rule for every mode; 0 turns it off, which is
-    what lets saturated Softmax-GS splats compete on the 2D patterns, docs/table1)."""
+    on the transmittance (default 1e-4, the 3DGS rule; it applies to vanilla steps only, so in
+    softmax modes never inside a pixel's first k_max splats; 0 turns it off everywhere,
+    ``smgs.raster.constants.T_MIN``)."""
 
     mode: str = "softmax_gs"
     steps: int = 30_000
