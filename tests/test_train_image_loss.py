@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from smgs.metrics.ssim import ssim
-from smgs.train.image_loss import PhotometricLoss, fused_available
+from smgs.train.image_loss import PhotometricLoss, fused_available, ray_variance
 
 needs_cc = pytest.mark.skipif(shutil.which("c++") is None, reason="no C++ compiler: no compiled loss")
 
@@ -68,3 +68,26 @@ def test_float64_takes_the_torch_path_and_bad_shapes_are_refused():
         PhotometricLoss(0.2, fused=True)(x, y)
     with pytest.raises(ValueError, match="one shape"):
         PhotometricLoss(0.2)(x, y[:, :5])
+
+
+@needs_cc
+def test_fused_ray_variance_matches_the_torch_path():
+    gen = torch.Generator().manual_seed(3)
+    w = torch.rand(20, 17, 1, generator=gen)
+    w[w < 0.3] = 0                                               # uncovered pixels
+    v = torch.randn(20, 17, 2, generator=gen)
+    reg = torch.cat([w, w * v, w * v * v * 1.2], -1)
+    reg[0, 0, 0], reg[0, 0, 3] = 0.5, -1.0                        # a negative variance: clamped to 0
+    gw = torch.tensor([0.7, -1.3])
+    out = {}
+    for fused in (True, False):
+        r = reg.clone().requires_grad_(True)
+        var = ray_variance(r, fused=fused)
+        (g,) = torch.autograd.grad((var * gw).sum(), r)
+        out[fused] = (var.detach(), g)
+    torch.testing.assert_close(out[True][0], out[False][0], rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(out[True][1], out[False][1], rtol=1e-5, atol=1e-8)
+    assert out[True][1][0, 0, 3] == 0 and out[True][1][reg[..., 0] == 0].eq(0).all()
+    assert ray_variance(torch.zeros(3, 3, 5), fused=True).eq(0).all()          # nothing covered
+    with pytest.raises(RuntimeError, match="float32 CPU"):
+        ray_variance(reg.double(), fused=True)

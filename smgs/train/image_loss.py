@@ -1,11 +1,14 @@
-"""The photometric training loss (1 − λ)·L1 + λ·(1 − SSIM), fused on CPU.
+"""The per-pixel training loss terms, fused on CPU: the photometric loss (1 − λ)·L1 + λ·(1 − SSIM)
+and the β/γ ray-variance regulariser.
 
 ``PhotometricLoss`` computes the loss and, in the same call, its gradient with respect to the
 render: on float32 CPU tensors in one compiled pass (``csrc/image_loss.cpp``, built just in time
 like the CPU renderer), elsewhere with the PyTorch path of ``smgs.train.loss`` (L1 and the fast
 SSIM). Both follow ``smgs.metrics.ssim`` (window and constants are passed from there), and
 tests/test_train_image_loss.py checks the compiled pass against the metric in value and gradient.
-It also returns the MSE, so the training PSNR costs no extra pass.
+It also returns the MSE, so the training PSNR costs no extra pass. ``ray_variance`` is
+``smgs.train.loss.ray_variance`` in one compiled pass each way on float32 CPU sums (the same
+fallback rule).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
 from smgs.raster.cpu import CFLAGS, cpu_tag, precheck
 from smgs.raster.jit import JitExtension
 from smgs.train.loss import SSIMLoss
+from smgs.train.loss import ray_variance as ray_variance_torch
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +69,32 @@ class _PhotometricCPU(torch.autograd.Function):
     def backward(ctx, g, _g_stats):  # type: ignore[override]
         (grad,) = ctx.saved_tensors
         return grad * g, None, None, None
+
+
+class _RayVarianceCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, reg, r: int):  # type: ignore[override]
+        ctx.save_for_backward(reg)
+        ctx.r = r
+        return _JIT.module().ray_variance(reg, r, torch.empty(0))[0]
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        (reg,) = ctx.saved_tensors
+        return _JIT.module().ray_variance(reg, ctx.r, g.detach().contiguous())[0], None
+
+
+def ray_variance(reg: torch.Tensor, fused: bool | None = None) -> torch.Tensor:
+    """``smgs.train.loss.ray_variance`` (per-ray weighted variances [R] from the renderer's reg
+    sums [H, W, 1 + 2R]), compiled on float32 CPU tensors where the extension is available
+    (``fused`` as in ``PhotometricLoss``)."""
+    ok = reg.device.type == "cpu" and reg.dtype == torch.float32 and fused is not False
+    if fused is True and not (ok and fused_available()):
+        raise RuntimeError("the fused ray variance takes float32 CPU sums and the compiled extension: "
+                           f"got {reg.dtype} on {reg.device}; {_JIT.unavailable_reason() or 'extension built'}")
+    if ok and fused_available():
+        return _RayVarianceCPU.apply(reg, (reg.shape[-1] - 1) // 2)
+    return ray_variance_torch(reg)
 
 
 class PhotometricLoss:

@@ -21,8 +21,7 @@ from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
-from smgs.train.image_loss import PhotometricLoss
-from smgs.train.loss import ray_variance
+from smgs.train.image_loss import PhotometricLoss, ray_variance
 from smgs.train.optim import GaussianOptimizer
 from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
 
