@@ -47,18 +47,23 @@ inline F16 load16(const float* p) {
 }
 inline void store16(float* p, F16 v) { std::memcpy(p, &v, sizeof v); }
 
+// V vectors of output at once: each sum is one dependency chain of adds (4-cycle latency), so
+// enough independent chains must be in flight to keep the vector units busy.
+template <int V>
+inline void taps_block(const float* const* src, const float* w, int m, float* __restrict out, int e) {
+  F16 a[V] = {};
+  for (int j = 0; j < m; ++j) {
+    const float* p = src[j] + e;
+    for (int v = 0; v < V; ++v) a[v] += w[j] * load16(p + v * kL);
+  }
+  for (int v = 0; v < V; ++v) store16(out + e + v * kL, a[v]);
+}
+
 // out[e] = Σ_j w[j]·src[j][e] for j < m, summed in j order (the same sums as tap by tap).
 inline void taps(const float* const* src, const float* w, int m, float* __restrict out, int n) {
   int e = 0;
-  for (; e + 2 * kL <= n; e += 2 * kL) {
-    F16 a0 = {}, a1 = {};
-    for (int j = 0; j < m; ++j) {
-      a0 += w[j] * load16(src[j] + e);
-      a1 += w[j] * load16(src[j] + e + kL);
-    }
-    store16(out + e, a0);
-    store16(out + e + kL, a1);
-  }
+  for (; e + 8 * kL <= n; e += 8 * kL) taps_block<8>(src, w, m, out, e);
+  for (; e + kL <= n; e += kL) taps_block<1>(src, w, m, out, e);
   for (; e < n; ++e) {
     float acc = 0.f;
     for (int j = 0; j < m; ++j) acc += w[j] * src[j][e];
