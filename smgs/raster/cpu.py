@@ -61,16 +61,23 @@ def precheck() -> str | None:
     return None
 
 
-def _build(suffix: str, defines: tuple[str, ...]):
-    from torch.utils.cpp_extension import load, verify_ninja_availability
+def cpu_extension(name: str, sources: list[Path], include: list[Path] | None = None,
+                  what: str = "renderer backend") -> JitExtension:
+    """A compiled CPU extension of smgs (``CFLAGS``, OpenMP, named per CPU kind), built just in
+    time on first use: the renderer here, the projection and the training loss elsewhere."""
 
-    verify_ninja_availability()
-    return load(name=f"smgs_raster_cpu_{cpu_tag()}{suffix}", sources=[str(_CSRC / s) for s in _SOURCES],
-                extra_include_paths=[str(_CSRC)], extra_cflags=CFLAGS + list(defines),
-                extra_ldflags=["-fopenmp"], verbose=False)
+    def build(suffix: str, defines: tuple[str, ...]):
+        from torch.utils.cpp_extension import load, verify_ninja_availability
+
+        verify_ninja_availability()
+        return load(name=f"{name}_{cpu_tag()}{suffix}", sources=[str(s) for s in sources],
+                    extra_include_paths=[str(i) for i in include or []], extra_cflags=CFLAGS + list(defines),
+                    extra_ldflags=["-fopenmp"], verbose=False)
+
+    return JitExtension("cpu", build, precheck, what=what)
 
 
-_JIT = JitExtension("cpu", _build, precheck)
+_JIT = cpu_extension("smgs_raster_cpu", [_CSRC / s for s in _SOURCES], [_CSRC])
 is_available = _JIT.is_available
 unavailable_reason = _JIT.unavailable_reason
 

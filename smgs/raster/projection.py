@@ -3,17 +3,27 @@
 The projection is one autograd node with a hand-written backward: a few Gaussians per image make
 the step cost the number of tensor ops, and autograd's graph of the same math has ~170 forward
 and ~250 backward ops. tests/test_raster_projection.py checks the backward with ``gradcheck``.
+
+On float32 CPU tensors the same math runs as one compiled pass each way (``csrc/projection_cpu.cpp``,
+built just in time like the CPU renderer): even as one node, the ~40 forward and ~50 backward
+tensor ops cost more than the arithmetic, at 4 Gaussians and at 10K. ``_Project`` stays the oracle
+(tests/test_raster_projection_cpu.py) and the path for other dtypes and devices.
 """
 
 from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from smgs.camera import Camera
 from smgs.raster import constants as K
+from smgs.raster.cpu import cpu_extension
+
+_CSRC = Path(__file__).parent / "csrc"
 
 
 @dataclass
@@ -176,17 +186,72 @@ class _Project(torch.autograd.Function):
         return g_means, g_quats, g_s, None, None, None
 
 
+_JIT = cpu_extension("smgs_projection_cpu", [_CSRC / "projection_cpu.cpp"], what="projection kernel")
+
+
+def fused_available() -> bool:
+    """Whether the compiled CPU projection can be used here (builds it on first call; never raises)."""
+    return _JIT.is_available()
+
+
+class _ProjectCPU(torch.autograd.Function):
+    """``_Project`` in one compiled pass each way, float32 CPU tensors. The extension derives the
+    camera quantities of ``_view`` itself (same float32 formulas; a test checks them bitwise), and
+    the backward recomputes the per-Gaussian intermediates, so only the inputs and ``ids`` are saved."""
+
+    @staticmethod
+    def forward(ctx, means3d, quats, scales, camera: Camera, near_plane: float, eps2d: float):  # type: ignore[override]
+        cam = (camera.viewmat, camera.K, camera.width, camera.height)
+        ids, means2d, conics, depths, radii = _JIT.module().forward(
+            means3d, quats, scales, *cam, near_plane, eps2d, K.SIGMA_EXTENT)
+        ctx.mark_non_differentiable(ids, radii)
+        ctx.save_for_backward(means3d, quats, scales, ids)
+        ctx.cam = cam
+        ctx.args = (near_plane, eps2d)
+        return ids, means2d, conics, depths, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii):  # type: ignore[override]
+        means3d, quats, scales, ids = ctx.saved_tensors
+        g_means, g_quats, g_s = _JIT.module().backward(
+            means3d, quats, scales, *ctx.cam, *ctx.args, ids, g_m2d.contiguous(), g_con.contiguous(),
+            g_depth.contiguous())
+        return g_means, g_quats, g_s, None, None, None
+
+
+def _use_fused(tensors: tuple[torch.Tensor, ...], fused: bool | None) -> bool:
+    if fused is False:
+        return False
+    ok = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+    if fused is True:
+        if not ok:
+            got = ", ".join(f"{t.dtype} on {t.device}" for t in tensors)
+            raise RuntimeError(f"the fused projection takes float32 CPU means3d, quats, scales; got {got}")
+        if not fused_available():
+            raise RuntimeError(f"the fused projection is unavailable: {_JIT.unavailable_reason()}")
+        return True
+    return ok and fused_available()
+
+
 def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                       camera: Camera, near_plane: float = K.NEAR_PLANE,
-                      eps2d: float = K.EPS2D) -> Projected:
+                      eps2d: float = K.EPS2D, fused: bool | None = None) -> Projected:
     """EWA splatting (Zwicker et al.; 3DGS): Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I.
 
     Culls Gaussians in front of the near plane and those whose 3σ box misses the image (the box
     is exact for the ellipse, so culling never changes an image). As in 3DGS, the Jacobian is
     evaluated at the mean clamped to 1.3× the field of view, which keeps far off-axis splats from
     exploding.
+
+    ``fused``: None uses the compiled CPU pass wherever it applies (float32 CPU tensors, the
+    extension available), True requires it (RuntimeError naming why not), False always uses the
+    PyTorch path.
     """
-    view = _view(camera, means3d.dtype, means3d.device)
-    ids, means2d, conics, depths, radii = _Project.apply(means3d, quats, scales, view, float(near_plane),
-                                                         float(eps2d))
+    if _use_fused((means3d, quats, scales), fused):
+        out = _ProjectCPU.apply(means3d, quats, scales, camera, float(near_plane), float(eps2d))
+    else:
+        out = _Project.apply(means3d, quats, scales, _view(camera, means3d.dtype, means3d.device),
+                             float(near_plane), float(eps2d))
+    ids, means2d, conics, depths, radii = out
     return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii)

@@ -21,8 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
-from smgs.raster.cpu import CFLAGS, cpu_tag, precheck
-from smgs.raster.jit import JitExtension
+from smgs.raster.cpu import cpu_extension
 from smgs.train.loss import SSIMLoss
 from smgs.train.loss import ray_variance as ray_variance_torch
 
@@ -31,15 +30,7 @@ log = logging.getLogger(__name__)
 _CSRC = Path(__file__).parent / "csrc"
 
 
-def _build(suffix: str, defines: tuple[str, ...]):
-    from torch.utils.cpp_extension import load, verify_ninja_availability
-
-    verify_ninja_availability()
-    return load(name=f"smgs_image_loss_cpu_{cpu_tag()}{suffix}", sources=[str(_CSRC / "image_loss.cpp")],
-                extra_cflags=CFLAGS + list(defines), extra_ldflags=["-fopenmp"], verbose=False)
-
-
-_JIT = JitExtension("cpu", _build, precheck, what="training-loss kernel")
+_JIT = cpu_extension("smgs_image_loss_cpu", [_CSRC / "image_loss.cpp"], what="training-loss kernel")
 
 
 def fused_available() -> bool:
