@@ -249,8 +249,8 @@ def write_tables(out: Path, rows: list[dict]) -> tuple[Path, Path]:
     checks = [c for s in sgs_rows for c in ordering_checks(summary, s)]
     if checks:
         lines += ["## Ordering (seed means): softmax_gs > gef_only > {softmax_only, 3dgs}", "",
-                  "| pattern | #GS | Softmax-GS row | softmax_gs best | gef_only > rest | order "
-                  "| Softmax-GS − paper (dB) |",
+                  ("| pattern | #GS | Softmax-GS row | softmax_gs best | gef_only > rest | order "
+                   "| Softmax-GS − paper (dB) |"),
                   "|---|---|---|---|---|---|---:|"]
         for c in checks:
             d = c["softmax_gs_vs_paper"]
