@@ -120,7 +120,7 @@ def test_camera_quantities_are_those_of_view():
     for cam in cams:
         v = _view(cam, torch.float32, torch.device("cpu"))
         want = torch.cat([v.rw.reshape(-1), v.tw, v.f, v.c, v.lo, v.hi, v.size])
-        assert torch.equal(ext.camera(cam.viewmat, cam.K, cam.width, cam.height), want)
+        assert torch.equal(ext.camera(projection._packed_view(v)), want)
 
 
 @needs_cc

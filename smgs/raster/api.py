@@ -167,7 +167,9 @@ def rasterize(
                            ("opacities", opacities, (n,))):
         if t.shape != shape:
             raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
-    proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d)
+    # The reference backend is the oracle: pure PyTorch throughout, so its projection is too.
+    proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
+                             fused=False if backend == "reference" else None)
     ids = proj.ids
     if sh_degree is None:
         if colors_or_sh.dim() != 2:

@@ -34,11 +34,11 @@ _HEADERS = ("splat_math.h",)
 # reach tests (q <= 4.5, a >= 1/255, T < 1e-4) see the same numbers; FMAs are written explicitly
 # where wanted. -fno-math-errno / -fno-trapping-math only let sqrt and selects vectorise: unlike
 # -ffast-math they keep NaN/inf semantics.
-CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
+_CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
            "-fno-trapping-math", "-std=c++17"]
 
 
-def cpu_tag() -> str:
+def _cpu_tag() -> str:
     """-march=native code must not be loaded on another CPU kind sharing the cache directory."""
     ident = platform.machine()
     try:
@@ -53,7 +53,7 @@ def cpu_tag() -> str:
     return hashlib.sha1(ident.encode()).hexdigest()[:10]
 
 
-def precheck() -> str | None:
+def _precheck() -> str | None:
     if os.environ.get("SMGS_DISABLE_CPU_BACKEND", "") not in ("", "0"):
         return "disabled by SMGS_DISABLE_CPU_BACKEND"
     if shutil.which(os.environ.get("CXX", "c++")) is None:
@@ -61,23 +61,45 @@ def precheck() -> str | None:
     return None
 
 
-def cpu_extension(name: str, sources: list[Path], include: list[Path] | None = None,
-                  what: str = "renderer backend") -> JitExtension:
-    """A compiled CPU extension of smgs (``CFLAGS``, OpenMP, named per CPU kind), built just in
+def cpu_extension(name: str, sources: list[Path], what: str, include: list[Path] | None = None) -> JitExtension:
+    """A compiled CPU extension of smgs (``_CFLAGS``, OpenMP, named per CPU kind), built just in
     time on first use: the renderer here, the projection and the training loss elsewhere."""
 
     def build(suffix: str, defines: tuple[str, ...]):
         from torch.utils.cpp_extension import load, verify_ninja_availability
 
         verify_ninja_availability()
-        return load(name=f"{name}_{cpu_tag()}{suffix}", sources=[str(s) for s in sources],
-                    extra_include_paths=[str(i) for i in include or []], extra_cflags=CFLAGS + list(defines),
+        return load(name=f"{name}_{_cpu_tag()}{suffix}", sources=[str(s) for s in sources],
+                    extra_include_paths=[str(i) for i in include or []], extra_cflags=_CFLAGS + list(defines),
                     extra_ldflags=["-fopenmp"], verbose=False)
 
-    return JitExtension("cpu", build, precheck, what=what)
+    return JitExtension("cpu", build, _precheck, what=what)
 
 
-_JIT = cpu_extension("smgs_raster_cpu", [_CSRC / s for s in _SOURCES], [_CSRC])
+class UnsupportedInput(ValueError, RuntimeError):
+    """Inputs a compiled CPU kernel does not take, where it was required (``fused=True``): a bad
+    argument (ValueError), and like the kernel's other refusals a RuntimeError."""
+
+
+def use_cpu_kernel(ext: JitExtension, fused: bool | None, tensors: tuple[torch.Tensor, ...], takes: str) -> bool:
+    """Whether to run a compiled CPU kernel (the projection, the training loss) rather than its
+    PyTorch path: ``fused`` None = wherever it applies (float32 CPU ``tensors``) and builds; True =
+    required (UnsupportedInput naming what it takes, RuntimeError naming why it cannot build);
+    False = never."""
+    if fused is False:
+        return False
+    applies = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+    if fused is True:
+        if not applies:
+            got = ", ".join(f"{t.dtype} on {t.device}" for t in tensors)
+            raise UnsupportedInput(f"the compiled {ext.what} takes float32 CPU {takes}; got {got}")
+        if not ext.is_available():
+            raise RuntimeError(f"the compiled {ext.what} is unavailable: {ext.unavailable_reason()}")
+        return True
+    return applies and ext.is_available()
+
+
+_JIT = cpu_extension("smgs_raster_cpu", [_CSRC / s for s in _SOURCES], "renderer backend", [_CSRC])
 is_available = _JIT.is_available
 unavailable_reason = _JIT.unavailable_reason
 

@@ -1,4 +1,5 @@
-"""A compiled backend's extension, built just in time on first use (the CPU and CUDA backends).
+"""A compiled extension, built just in time on first use: the CPU and CUDA renderer backends, and
+the CPU projection and training-loss kernels.
 
 One build per process and per ``t_min`` value (a threshold other than the default is compiled in
 with ``-DSMGS_T_MIN``); PyTorch caches the binaries across processes. A backend that cannot be

@@ -21,7 +21,7 @@ from torch.autograd.function import once_differentiable
 
 from smgs.camera import Camera
 from smgs.raster import constants as K
-from smgs.raster.cpu import cpu_extension
+from smgs.raster.cpu import cpu_extension, use_cpu_kernel
 
 _CSRC = Path(__file__).parent / "csrc"
 
@@ -186,7 +186,7 @@ class _Project(torch.autograd.Function):
         return g_means, g_quats, g_s, None, None, None
 
 
-_JIT = cpu_extension("smgs_projection_cpu", [_CSRC / "projection_cpu.cpp"], what="projection kernel")
+_JIT = cpu_extension("smgs_projection_cpu", [_CSRC / "projection_cpu.cpp"], "projection kernel")
 
 
 def fused_available() -> bool:
@@ -194,44 +194,32 @@ def fused_available() -> bool:
     return _JIT.is_available()
 
 
+def _packed_view(view: _View) -> torch.Tensor:
+    """``view`` as the flat float32 [22] the compiled projection reads: rw, tw, f, c, lo, hi, size."""
+    return torch.cat([view.rw.reshape(-1), view.tw, view.f, view.c, view.lo, view.hi, view.size])
+
+
 class _ProjectCPU(torch.autograd.Function):
-    """``_Project`` in one compiled pass each way, float32 CPU tensors. The extension derives the
-    camera quantities of ``_view`` itself (same float32 formulas; a test checks them bitwise), and
-    the backward recomputes the per-Gaussian intermediates, so only the inputs and ``ids`` are saved."""
+    """``_Project`` in one compiled pass each way, float32 CPU tensors. The backward recomputes the
+    per-Gaussian intermediates, so only the inputs and ``ids`` are saved."""
 
     @staticmethod
-    def forward(ctx, means3d, quats, scales, camera: Camera, near_plane: float, eps2d: float):  # type: ignore[override]
-        cam = (camera.viewmat, camera.K, camera.width, camera.height)
+    def forward(ctx, means3d, quats, scales, view: torch.Tensor, near_plane: float, eps2d: float):  # type: ignore[override]
         ids, means2d, conics, depths, radii = _JIT.module().forward(
-            means3d, quats, scales, *cam, near_plane, eps2d, K.SIGMA_EXTENT)
+            means3d, quats, scales, view, near_plane, eps2d, K.SIGMA_EXTENT)
         ctx.mark_non_differentiable(ids, radii)
-        ctx.save_for_backward(means3d, quats, scales, ids)
-        ctx.cam = cam
+        ctx.save_for_backward(means3d, quats, scales, ids, view)
         ctx.args = (near_plane, eps2d)
         return ids, means2d, conics, depths, radii
 
     @staticmethod
     @once_differentiable
     def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii):  # type: ignore[override]
-        means3d, quats, scales, ids = ctx.saved_tensors
+        means3d, quats, scales, ids, view = ctx.saved_tensors
         g_means, g_quats, g_s = _JIT.module().backward(
-            means3d, quats, scales, *ctx.cam, *ctx.args, ids, g_m2d.contiguous(), g_con.contiguous(),
+            means3d, quats, scales, view, *ctx.args, ids, g_m2d.contiguous(), g_con.contiguous(),
             g_depth.contiguous())
         return g_means, g_quats, g_s, None, None, None
-
-
-def _use_fused(tensors: tuple[torch.Tensor, ...], fused: bool | None) -> bool:
-    if fused is False:
-        return False
-    ok = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
-    if fused is True:
-        if not ok:
-            got = ", ".join(f"{t.dtype} on {t.device}" for t in tensors)
-            raise RuntimeError(f"the fused projection takes float32 CPU means3d, quats, scales; got {got}")
-        if not fused_available():
-            raise RuntimeError(f"the fused projection is unavailable: {_JIT.unavailable_reason()}")
-        return True
-    return ok and fused_available()
 
 
 def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -248,10 +236,10 @@ def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.
     extension available), True requires it (RuntimeError naming why not), False always uses the
     PyTorch path.
     """
-    if _use_fused((means3d, quats, scales), fused):
-        out = _ProjectCPU.apply(means3d, quats, scales, camera, float(near_plane), float(eps2d))
+    view = _view(camera, means3d.dtype, means3d.device)
+    if use_cpu_kernel(_JIT, fused, (means3d, quats, scales), "means3d, quats, scales"):
+        out = _ProjectCPU.apply(means3d, quats, scales, _packed_view(view), float(near_plane), float(eps2d))
     else:
-        out = _Project.apply(means3d, quats, scales, _view(camera, means3d.dtype, means3d.device),
-                             float(near_plane), float(eps2d))
+        out = _Project.apply(means3d, quats, scales, view, float(near_plane), float(eps2d))
     ids, means2d, conics, depths, radii = out
     return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii)

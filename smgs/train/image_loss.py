@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
-from smgs.raster.cpu import cpu_extension
+from smgs.raster.cpu import cpu_extension, use_cpu_kernel
 from smgs.train.loss import SSIMLoss
 from smgs.train.loss import ray_variance as ray_variance_torch
 
@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 _CSRC = Path(__file__).parent / "csrc"
 
 
-_JIT = cpu_extension("smgs_image_loss_cpu", [_CSRC / "image_loss.cpp"], what="training-loss kernel")
+_JIT = cpu_extension("smgs_image_loss_cpu", [_CSRC / "image_loss.cpp"], "training-loss kernel")
 
 
 def fused_available() -> bool:
@@ -79,11 +79,7 @@ def ray_variance(reg: torch.Tensor, fused: bool | None = None) -> torch.Tensor:
     """``smgs.train.loss.ray_variance`` (per-ray weighted variances [R] from the renderer's reg
     sums [H, W, 1 + 2R]), compiled on float32 CPU tensors where the extension is available
     (``fused`` as in ``PhotometricLoss``)."""
-    ok = reg.device.type == "cpu" and reg.dtype == torch.float32 and fused is not False
-    if fused is True and not (ok and fused_available()):
-        raise RuntimeError("the fused ray variance takes float32 CPU sums and the compiled extension: "
-                           f"got {reg.dtype} on {reg.device}; {_JIT.unavailable_reason() or 'extension built'}")
-    if ok and fused_available():
+    if use_cpu_kernel(_JIT, fused, (reg,), "sums"):
         return _RayVarianceCPU.apply(reg, (reg.shape[-1] - 1) // 2)
     return ray_variance_torch(reg)
 
@@ -100,23 +96,11 @@ class PhotometricLoss:
         self._ssim = SSIMLoss()
         self._window = gaussian_kernel_1d().to(torch.float32)
 
-    def _use_fused(self, x: torch.Tensor) -> bool:
-        if self.fused is False:
-            return False
-        ok = x.device.type == "cpu" and x.dtype == torch.float32
-        if self.fused is True:
-            if not ok:
-                raise ValueError(f"the fused loss takes float32 CPU images, not {x.dtype} on {x.device}")
-            if not fused_available():
-                raise RuntimeError(f"the fused loss is unavailable: {_JIT.unavailable_reason()}")
-            return True
-        return ok and fused_available()
-
     def __call__(self, x: torch.Tensor, y: torch.Tensor) -> LossParts:
         if x.shape != y.shape or x.dim() != 3:
             raise ValueError(f"render and target must be [H, W, C] of one shape, got {tuple(x.shape)} "
                              f"and {tuple(y.shape)}")
-        if self._use_fused(x):
+        if use_cpu_kernel(_JIT, self.fused, (x,), "images"):
             total, stats = _PhotometricCPU.apply(x, y.detach().to(x.dtype), self._window, self.lam)
             l1v, ssim_v, mse = (float(v) for v in stats[1:])
             return LossParts(total, l1v, ssim_v, mse)

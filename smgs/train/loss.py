@@ -6,8 +6,8 @@ products (the 11×11 depthwise conv2d costs ~5-10 ms forward+backward at 128² o
 products ~0.5 ms per blur of 9 channels), the backward is analytic (the window is symmetric, so
 the blur is its own adjoint), and the target's statistics are computed once per image. Tests
 check it against ``smgs.metrics.ssim`` in value and gradient. On float32 CPU tensors the trainer
-uses the compiled pass of ``smgs.train.image_loss`` instead (same definition, one pass, ~3× faster
-at 128²); this module is its fallback on other devices and dtypes.
+uses the compiled pass of ``smgs.train.image_loss`` instead (same definition, one pass, ~3.5×
+faster at 128²); this module is its fallback on other devices and dtypes.
 """
 
 from __future__ import annotations

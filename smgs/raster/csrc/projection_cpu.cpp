@@ -24,36 +24,18 @@
 
 namespace {
 
-// The camera quantities of projection.py's _view, computed as there in float32 from the camera's
-// viewmat [4, 4] and K [3, 3] (any dtype, converted by the same .to as there): building them with
-// ~20 tensor ops in Python cost as much as the whole compiled forward at a few Gaussians.
+// The camera quantities of projection.py's _view (defined there once), as the flat float32 [22]
+// it packs: rw [3, 3] row-major, tw [3], then f, c, lo, hi, size [2 each].
 struct Cam {
   float rw[3][3], tw[3], f[2], c[2], lo[2], hi[2], size[2];
 };
+static_assert(sizeof(Cam) == 22 * sizeof(float), "Cam is 22 packed floats");
 
-Cam make_cam(const at::Tensor& viewmat_, const at::Tensor& K_, int64_t width, int64_t height) {
-  TORCH_CHECK(viewmat_.dim() == 2 && viewmat_.size(0) == 4 && viewmat_.size(1) == 4 && K_.dim() == 2 &&
-                  K_.size(0) == 3 && K_.size(1) == 3,
-              "projection_cpu: viewmat must be [4, 4] and K [3, 3]");
-  const at::Tensor V = viewmat_.to(at::kCPU, at::kFloat).contiguous(), K = K_.to(at::kCPU, at::kFloat).contiguous();
-  const float* v = V.data_ptr<float>();
-  const float* k = K.data_ptr<float>();
+Cam unpack_cam(const at::Tensor& view) {
+  TORCH_CHECK(view.scalar_type() == at::kFloat && view.device().is_cpu() && view.numel() == 22,
+              "projection_cpu: the camera must be _view's quantities as float32 CPU [22]");
   Cam cam;
-  for (int j = 0; j < 3; ++j) {
-    for (int i = 0; i < 3; ++i) cam.rw[j][i] = v[4 * j + i];
-    cam.tw[j] = v[4 * j + 3];
-  }
-  cam.f[0] = k[0];
-  cam.f[1] = k[4];
-  cam.c[0] = k[2];
-  cam.c[1] = k[5];
-  cam.size[0] = float(width);
-  cam.size[1] = float(height);
-  for (int a = 0; a < 2; ++a) {   // m = 0.15·size / f; lo = −c / f − m; hi = (size − c) / f + m
-    const float m = 0.15f * cam.size[a] / cam.f[a];
-    cam.lo[a] = -cam.c[a] / cam.f[a] - m;
-    cam.hi[a] = (cam.size[a] - cam.c[a]) / cam.f[a] + m;
-  }
+  std::memcpy(&cam, view.contiguous().data_ptr<float>(), sizeof cam);
   return cam;
 }
 
@@ -128,12 +110,11 @@ constexpr int64_t kGrain = kBlock * kGrainBlocks;
 // Returns {ids int64 [M], means2d [M, 2], conics [M, 3], depths [M], radii [M, 2]} of the M Gaussians
 // in front of the near plane whose 3σ box meets the image, in input order.
 std::vector<at::Tensor> forward(const at::Tensor& means3d_, const at::Tensor& quats_, const at::Tensor& scales_,
-                                const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
-                                double near_plane, double eps2d, double sigma_extent) {
+                                const at::Tensor& view, double near_plane, double eps2d, double sigma_extent) {
   const int64_t n = means3d_.size(0);
   const at::Tensor means3d = rows(means3d_, n, 3, "means3d"), quats = rows(quats_, n, 4, "quats"),
                    scales = rows(scales_, n, 3, "scales");
-  const Cam cam = make_cam(viewmat, K, width, height);
+  const Cam cam = unpack_cam(view);
   const float* M3 = means3d.data_ptr<float>();
   const float* Q = quats.data_ptr<float>();
   const float* S = scales.data_ptr<float>();
@@ -209,13 +190,12 @@ std::vector<at::Tensor> forward(const at::Tensor& means3d_, const at::Tensor& qu
 // conics [M, 3], depths [M] (rows of `ids`); zero for the culled Gaussians. Transcribes
 // _Project.backward line by line.
 std::vector<at::Tensor> backward(const at::Tensor& means3d_, const at::Tensor& quats_, const at::Tensor& scales_,
-                                 const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
-                                 double near_plane, double eps2d, const at::Tensor& ids_,
+                                 const at::Tensor& view, double near_plane, double eps2d, const at::Tensor& ids_,
                                  const at::Tensor& g_m2d_, const at::Tensor& g_con_, const at::Tensor& g_depth_) {
   const int64_t n = means3d_.size(0);
   const at::Tensor means3d = rows(means3d_, n, 3, "means3d"), quats = rows(quats_, n, 4, "quats"),
                    scales = rows(scales_, n, 3, "scales");
-  const Cam cam = make_cam(viewmat, K, width, height);
+  const Cam cam = unpack_cam(view);
   TORCH_CHECK(ids_.scalar_type() == at::kLong && ids_.dim() == 1, "projection_cpu: ids must be int64 [M]");
   const at::Tensor ids = ids_.contiguous();
   const int64_t m = ids.size(0);
@@ -299,11 +279,9 @@ std::vector<at::Tensor> backward(const at::Tensor& means3d_, const at::Tensor& q
   return {g_means, g_quats, g_scales};
 }
 
-// The camera quantities as forward uses them, flat [22]: rw [9], tw [3], then f, c, lo, hi, size [2
-// each] (the tests check them against _view).
-at::Tensor camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height) {
-  const Cam cam = make_cam(viewmat, K, width, height);
-  static_assert(sizeof(Cam) == 22 * sizeof(float), "Cam is 22 packed floats");
+// The camera quantities as forward reads them, flat [22] (the tests check the layout against _view).
+at::Tensor camera(const at::Tensor& view) {
+  const Cam cam = unpack_cam(view);
   at::Tensor out = at::empty({22}, at::kFloat);
   std::memcpy(out.data_ptr<float>(), &cam, sizeof cam);
   return out;
@@ -312,5 +290,5 @@ at::Tensor camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "EWA projection with culling: ids, means2d, conics, depths, radii");
   m.def("backward", &backward, "gradients w.r.t. means3d, quats, scales (zero for culled Gaussians)");
-  m.def("camera", &camera, "the camera quantities of forward, flat (rw, tw, f, c, lo, hi, size)");
+  m.def("camera", &camera, "the camera quantities as forward reads them, flat (rw, tw, f, c, lo, hi, size)");
 }

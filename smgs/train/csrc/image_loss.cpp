@@ -7,7 +7,7 @@
 // over contiguous memory. Also here: the β/γ ray-variance regulariser (the other per-pixel term of
 // the training loss).
 //
-// Why compiled: at 128² the PyTorch version costs ~2.5 ms a step (two banded matrix products per
+// Why compiled: at 128² the PyTorch version costs ~3 ms a step (two banded matrix products per
 // blur and ~40 elementwise ops on 50K floats), more than the renderer's forward and backward at
 // a few Gaussians; here it is two small separable blurs and one fused elementwise pass.
 
@@ -245,45 +245,43 @@ std::vector<at::Tensor> ray_variance(const at::Tensor& reg_, int64_t R, const at
   const at::Tensor reg = reg_.contiguous();
   const int64_t S = 1 + 2 * R, P = reg.numel() / S;
   const float* q = reg.data_ptr<float>();
-  std::vector<double> acc(R, 0.0);
   int64_t hits = 0;
   for (int64_t p = 0; p < P; ++p) hits += q[p * S] > 0.f;
   const double n = double(std::max<int64_t>(hits, 1));
-  if (!g_.defined() || g_.numel() == 0) {
-    for (int64_t p = 0; p < P; ++p) {
-      const float* e = q + p * S;
-      if (!(e[0] > 0.f)) continue;         // uncovered: contributes 0 (and NaN sums are not hits)
-      const float inv = 1.f / e[0];
-      for (int64_t r = 0; r < R; ++r) {
-        const float mean = e[1 + r] * inv, var = e[1 + R + r] * inv - mean * mean;
-        if (var >= 0.f) acc[r] += var;
-      }
-    }
-    at::Tensor out = at::empty({R}, reg.options());
-    for (int64_t r = 0; r < R; ++r) out.data_ptr<float>()[r] = float(acc[r] / n);
-    return {out};
+  const bool want_grad = g_.defined() && g_.numel() > 0;
+  std::vector<double> acc(R, 0.0);
+  std::vector<float> gn(R, 0.f);   // dL/dVar_r / n
+  at::Tensor grad;
+  float* d = nullptr;
+  if (want_grad) {
+    const at::Tensor g = g_.to(at::kFloat).contiguous();
+    for (int64_t r = 0; r < R; ++r) gn[r] = float(double(g.data_ptr<float>()[r]) / n);
+    grad = at::zeros_like(reg);
+    d = grad.data_ptr<float>();
   }
-  const at::Tensor g = g_.to(at::kFloat).contiguous();
-  std::vector<float> gn(R);
-  for (int64_t r = 0; r < R; ++r) gn[r] = float(double(g.data_ptr<float>()[r]) / n);
-  at::Tensor grad = at::zeros_like(reg);
-  float* d = grad.data_ptr<float>();
   for (int64_t p = 0; p < P; ++p) {
     const float* e = q + p * S;
-    if (!(e[0] > 0.f)) continue;
-    float* o = d + p * S;
+    if (!(e[0] > 0.f)) continue;         // uncovered: contributes 0 (and NaN sums are not hits)
     const float inv = 1.f / e[0];
     float d0 = 0.f;
     for (int64_t r = 0; r < R; ++r) {
       const float mean = e[1 + r] * inv, var = e[1 + R + r] * inv - mean * mean;
-      const float gv = var >= 0.f ? gn[r] * inv : 0.f;   // dL/dS2 (torch.clamp passes at >= 0)
-      d0 -= gv * (var - mean * mean);                    // dL/dS0 = −gv·(Var − μ²)
-      o[1 + r] = -2.f * gv * mean;                       // dL/dS1 = −2·gv·μ
-      o[1 + R + r] = gv;
+      const bool keep = var >= 0.f;       // torch.clamp(min=0) passes at >= 0
+      if (!want_grad) {
+        if (keep) acc[r] += var;
+        continue;
+      }
+      const float gv = keep ? gn[r] * inv : 0.f;   // dL/dS2
+      d0 -= gv * (var - mean * mean);              // dL/dS0 = −gv·(Var − μ²)
+      d[p * S + 1 + r] = -2.f * gv * mean;         // dL/dS1 = −2·gv·μ
+      d[p * S + 1 + R + r] = gv;
     }
-    o[0] = d0;
+    if (want_grad) d[p * S] = d0;
   }
-  return {grad};
+  if (want_grad) return {grad};
+  at::Tensor out = at::empty({R}, reg.options());
+  for (int64_t r = 0; r < R; ++r) out.data_ptr<float>()[r] = float(acc[r] / n);
+  return {out};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
