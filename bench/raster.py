@@ -4,11 +4,13 @@
     python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --repeats 9
 
 Everything is timed through ``smgs.raster.rasterize`` (EWA projection and SH in PyTorch, then the
-backend), loss = image mean, median over repeats after a warm-up. Columns: forward ms, forward +
-backward ms, splat-pixel pairs the backend evaluated per second (forward; pairs / fwd+bwd time),
-peak resident memory of a forward+backward above the resident set before it, and each mode's time
-relative to ``3dgs`` on the same scene and backend. The machine is shared: the load average is
-printed with the table, and ratios between modes are more stable than absolute times.
+backend), loss = image mean, median over repeats after a warm-up. The modes of a scene and backend
+are timed round-robin (one call of each per round), so they share the drift of a shared machine's
+load. Columns: forward ms, forward + backward ms, splat-pixel pairs the backend evaluated per second
+(forward; pairs / fwd+bwd time), peak resident memory of a forward+backward above the resident set
+before it, and each mode's time relative to ``3dgs`` on the same scene and backend (the median of
+the per-round ratios). The load average is printed with the table; ratios between modes are more
+stable than absolute times. To compare two builds of the CPU kernel, see ``bench/kernel_ab.py``.
 
 Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
 scenes made by the same recipe at other sizes. The reference backend is dense (every splat at every
@@ -23,6 +25,7 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +106,28 @@ def _rss_bytes() -> int:
         return 0
 
 
-def bench_one(params, cam, mode, backend, k_max, repeats, warmup):
+def interleaved_ms(fns: dict[str, Callable[[], object]], repeats: int, warmup: int) -> dict[str, list[float]]:
+    """Times of each function in ms, called round-robin (one call of each per round), so that every
+    function sees the same drift of a shared machine's load and ratios between them stay fair."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    ts: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[k].append(1e3 * (time.perf_counter() - t0))
+    return ts
+
+
+def ratio_to(ts: dict[str, list[float]], key: str, base: str) -> float:
+    """Median over rounds of the per-round ratio ts[key] / ts[base]."""
+    return statistics.median(a / b for a, b in zip(ts[key], ts[base]))
+
+
+def mode_calls(params, cam, mode, backend, k_max):
+    """(forward, forward+backward) closures of one mode, each returning the render output."""
     dev = torch.device("cuda" if backend == "cuda" else "cpu")
     params = {k: v.to(dev) for k, v in params.items()}
     leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
@@ -128,17 +152,29 @@ def bench_one(params, cam, mode, backend, k_max, repeats, warmup):
         sync()
         return out
 
-    out = fwd()
-    pairs = out.stats.pairs_evaluated
-    t_f = median_ms(fwd, repeats, warmup)
-    t_fb = median_ms(fwd_bwd, repeats, warmup)
-    base = _rss_bytes() if dev.type == "cpu" else 0   # cuda: peak allocated by torch
-    with track_peak_memory(dev) as pm:
-        fwd_bwd()
-    peak = max(0, pm.bytes - base) if pm.kind in ("cpu_peak_rss_vmhwm_reset", "cuda_max_memory_allocated") \
-        else float("nan")
-    return dict(fwd_ms=t_f, fb_ms=t_fb, pairs=pairs, peak_mib=peak / 2**20,
-                contrib=out.stats.contributions, within=out.stats.frac_within_kmax)
+    return fwd, fwd_bwd, dev
+
+
+def bench_modes(params, cam, modes, backend, k_max, repeats, warmup) -> dict[str, dict]:
+    """Every mode on one scene and backend: forward and forward+backward times (modes interleaved
+    round by round), pairs, peak memory, and ratios to ``3dgs`` as medians of per-round ratios."""
+    calls = {m: mode_calls(params, cam, m, backend, k_max) for m in modes}
+    res: dict[str, dict] = {}
+    for m, (fwd, _, dev) in calls.items():
+        out = fwd()
+        res[m] = dict(pairs=out.stats.pairs_evaluated, contrib=out.stats.contributions,
+                      within=out.stats.frac_within_kmax)
+    t_f = interleaved_ms({m: c[0] for m, c in calls.items()}, repeats, warmup)
+    t_fb = interleaved_ms({m: c[1] for m, c in calls.items()}, repeats, warmup)
+    for m, (_, fwd_bwd, dev) in calls.items():
+        base = _rss_bytes() if dev.type == "cpu" else 0   # cuda: peak allocated by torch
+        with track_peak_memory(dev) as pm:
+            fwd_bwd()
+        peak = max(0, pm.bytes - base) if pm.kind in ("cpu_peak_rss_vmhwm_reset", "cuda_max_memory_allocated") \
+            else float("nan")
+        res[m].update(fwd_ms=statistics.median(t_f[m]), fb_ms=statistics.median(t_fb[m]), peak_mib=peak / 2**20,
+                      ratio=None if "3dgs" not in calls else (ratio_to(t_f, m, "3dgs"), ratio_to(t_fb, m, "3dgs")))
+    return res
 
 
 def projection_ms(params, cam, repeats, warmup):
@@ -182,15 +218,11 @@ def main(argv=None) -> None:
             if backend == "reference" and n * cam.width * cam.height > args.reference_max_pairs:
                 continue
             reps = args.repeats if backend != "reference" else max(1, min(args.repeats, 3))
-            res = {}
-            for mode in args.modes:
-                res[mode] = bench_one(params, cam, mode, backend, args.k_max, reps, args.warmup)
-                print(f"  {name} {mode} {backend}: {res[mode]['fwd_ms']:.1f} / {res[mode]['fb_ms']:.1f} ms",
-                      file=sys.stderr, flush=True)
+            res = bench_modes(params, cam, args.modes, backend, args.k_max, reps, args.warmup)
             for mode, r in res.items():
-                b = res.get("3dgs")
-                rows.append((name, n, mode, backend, r, None if b is None else (r["fwd_ms"] / b["fwd_ms"],
-                                                                                 r["fb_ms"] / b["fb_ms"])))
+                print(f"  {name} {mode} {backend}: {r['fwd_ms']:.1f} / {r['fb_ms']:.1f} ms", file=sys.stderr,
+                      flush=True)
+                rows.append((name, n, mode, backend, r, r["ratio"]))
     print()
     print("| scene | N | mode | backend | fwd ms | fwd+bwd ms | fwd Mpairs/s | f+b Mpairs/s | peak MiB (f+b) "
           "| ×3dgs fwd | ×3dgs f+b | within k_max |")
