@@ -160,7 +160,7 @@ def bench_modes(params, cam, modes, backend, k_max, repeats, warmup) -> dict[str
     round by round), pairs, peak memory, and ratios to ``3dgs`` as medians of per-round ratios."""
     calls = {m: mode_calls(params, cam, m, backend, k_max) for m in modes}
     res: dict[str, dict] = {}
-    for m, (fwd, _, dev) in calls.items():
+    for m, (fwd, _, _dev) in calls.items():
         out = fwd()
         res[m] = dict(pairs=out.stats.pairs_evaluated, contrib=out.stats.contributions,
                       within=out.stats.frac_within_kmax)

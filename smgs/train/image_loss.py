@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
 
 from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
 from smgs.raster.cpu import cpu_extension, use_cpu_kernel
@@ -57,6 +58,7 @@ class _PhotometricCPU(torch.autograd.Function):
         return x.new_tensor(float(stats[0])), stats
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, g, _g_stats):  # type: ignore[override]
         (grad,) = ctx.saved_tensors
         return grad * g, None, None, None
@@ -70,6 +72,7 @@ class _RayVarianceCPU(torch.autograd.Function):
         return _JIT.module().ray_variance(reg, r, torch.empty(0))[0]
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, g):  # type: ignore[override]
         (reg,) = ctx.saved_tensors
         return _JIT.module().ray_variance(reg, ctx.r, g.detach().contiguous())[0], None

@@ -226,16 +226,15 @@ std::vector<at::Tensor> backward(const at::Tensor& means3d_, const at::Tensor& q
       const float g_sxx = gc * inv + g_det * o.syy;
       const float g_syy = ga * inv + g_det * o.sxx;
       const float g_sxy = -gb * inv - 2.f * o.sxy * g_det;
-      // Σ2D = P Pᵀ, sxy read from the upper triangle: dL/dP = (G + Gᵀ)·P
+      // Σ2D = P Pᵀ, sxy read from the upper triangle: dL/dP = (G + Gᵀ)·P; P = TR·diag(s)
       const float G[2][2] = {{2.f * g_sxx, g_sxy}, {g_sxy, 2.f * g_syy}};
-      float g_TR[2][3];
+      float g_P[2][3], g_TR[2][3];
       for (int a = 0; a < 2; ++a)
-        for (int k = 0; k < 3; ++k) g_TR[a][k] = (G[a][0] * o.P[0][k] + G[a][1] * o.P[1][k]) * S[3 * i + k];
-      for (int k = 0; k < 3; ++k) {
-        const float gp0 = G[0][0] * o.P[0][k] + G[0][1] * o.P[1][k];
-        const float gp1 = G[1][0] * o.P[0][k] + G[1][1] * o.P[1][k];
-        OS[3 * i + k] = gp0 * o.TR[0][k] + gp1 * o.TR[1][k];
-      }
+        for (int k = 0; k < 3; ++k) {
+          g_P[a][k] = G[a][0] * o.P[0][k] + G[a][1] * o.P[1][k];
+          g_TR[a][k] = g_P[a][k] * S[3 * i + k];
+        }
+      for (int k = 0; k < 3; ++k) OS[3 * i + k] = g_P[0][k] * o.TR[0][k] + g_P[1][k] * o.TR[1][k];
       float g_T[2][3], g_R[3][3];
       for (int a = 0; a < 2; ++a)
         for (int k = 0; k < 3; ++k)
