@@ -11,7 +11,6 @@ every library loaded, so compare them only between runs of the same process layo
 
 from __future__ import annotations
 
-import platform
 import resource
 import statistics
 import sys
@@ -22,23 +21,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import torch
 
-
-def device_name(device: torch.device | str = "cpu") -> str:
-    """A human-readable device name: the GPU model, or the CPU model and the torch thread count."""
-    device = torch.device(device)
-    if device.type == "cuda":
-        return f"cuda:{torch.cuda.get_device_name(device)}"
-    model = ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    model = model or platform.processor() or platform.machine()
-    return f"cpu:{model} ({torch.get_num_threads()} threads)"
+from smgs.device import device_name  # noqa: F401  (re-exported: reports and bench import it here)
 
 
 def _sync(device: torch.device) -> None:
@@ -60,8 +43,8 @@ class FPSResult:
         return asdict(self)
 
 
-def measure_render_fps(render: Callable[[Any], Any], cameras: Sequence[Any], *, warmup: int = 3,
-                       repeats: int = 5, device: torch.device | str = "cpu") -> FPSResult:
+def measure_render_fps(render: Callable[[Any], Any], cameras: Sequence[Any], *, device: torch.device | str,
+                       warmup: int = 3, repeats: int = 5) -> FPSResult:
     """Frames per second of ``render(camera)`` over ``cameras``.
 
     ``warmup`` renders (cycling through the cameras) are discarded; then each repeat renders every
@@ -131,7 +114,7 @@ def _ru_maxrss_bytes() -> int:
 
 
 @contextmanager
-def track_peak_memory(device: torch.device | str = "cpu") -> Iterator[PeakMemory]:
+def track_peak_memory(device: torch.device | str) -> Iterator[PeakMemory]:
     """``with track_peak_memory(dev) as pm: ...``; afterwards ``pm.bytes`` and ``pm.kind``."""
     dev = torch.device(device)
     if dev.type == "cuda":
@@ -164,7 +147,7 @@ class TrainClock:
     else (evaluation, checkpoints, logging outside the blocks) does not. Synchronises CUDA at each
     boundary so queued GPU work is charged to the block that launched it."""
 
-    device: str = "cpu"
+    device: str | torch.device
     seconds: float = 0.0
     excluded: dict[str, float] = field(default_factory=dict)
 
