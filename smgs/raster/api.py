@@ -29,7 +29,7 @@ def _load_backend(name: str) -> Callable[..., RenderOutput]:
     return getattr(importlib.import_module(module), fn)
 
 
-def backend_available(name: str, device: torch.device | str = "cpu",
+def backend_available(name: str, device: torch.device | str,
                       dtype: torch.dtype = torch.float32) -> bool:
     """Whether ``name`` can render tensors of this device and dtype here."""
     device = torch.device(device)
