@@ -72,16 +72,12 @@ def _config(scene_name: str, method: str, backend: str) -> dict:
     return cfg
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def bench(scene: Scene, scene_name: str, method: str, steps: int, warmup: int, backend: str,
           device: torch.device) -> dict:
     """Seconds per step; on a GPU the device is synchronised before and after the timed steps
     (the per-stage shares are host-side times, so there they show launch cost, not GPU time)."""
     from baselines import create_method
+    from smgs.metrics.timing import synchronize
 
     m = create_method(method, scene, _config(scene_name, method, backend), device=device)
     for s in range(warmup):
@@ -89,11 +85,11 @@ def bench(scene: Scene, scene_name: str, method: str, steps: int, warmup: int, b
     tr = m.trainer
     tr.timings = {k: 0.0 for k in tr.timings}
     tr.profile = True
-    _sync(device)
+    synchronize(device)
     t0, c0 = time.perf_counter(), time.process_time()
     for s in range(warmup, warmup + steps):
         m.train_step(s)
-    _sync(device)
+    synchronize(device)
     total, cpu = time.perf_counter() - t0, time.process_time() - c0
     shares = {k: v / total for k, v in tr.timings.items()}
     return {"scene": scene_name, "method": method, "gaussians": m.num_gaussians(),
@@ -105,13 +101,14 @@ def fit4(method: str, backend: str, device: torch.device, steps: int = 10_000) -
     """Wall and process CPU seconds of a full 4-Gaussian circle4 fit (set-up excluded)."""
     from baselines import create_method
     from smgs.data.patterns import pattern_scene
+    from smgs.metrics.timing import synchronize
 
     m = create_method(method, pattern_scene("circle4", 128), _config("pattern4", method, backend), device=device)
-    _sync(device)
+    synchronize(device)
     t0, c0 = time.perf_counter(), time.process_time()
     for s in range(steps):
         m.train_step(s)
-    _sync(device)
+    synchronize(device)
     return time.perf_counter() - t0, time.process_time() - c0
 
 

@@ -69,3 +69,29 @@ def only_device(device: torch.device | str) -> Iterator[_Recorder]:
         raise
     if rec.strays:
         raise StrayTensors(f"tensors created off {dev}:\n  " + "\n  ".join(rec.strays))
+
+
+def fit_config(method: str, steps: int = 40) -> dict:
+    """A 2D fit that clones, splits, prunes and resets opacities within a few steps, on a random
+    background: every path of a training step that makes tensors."""
+    from smgs.train import pattern_config, to_dict
+
+    cfg = to_dict(pattern_config(method, cap=12, steps=steps))
+    cfg["densify"].update(refine_start=1, refine_every=3, reset_every=6)
+    cfg["gaussians"].update(flat_spacing=0.05, flat_scale=0.1)
+    cfg["random_background"] = True
+    return cfg
+
+
+def train_save_load(method: str, scene, first, second, path: Path, steps: int = 8):
+    """Train ``steps`` steps on device ``first``, save, and load the checkpoint into a fresh method
+    on ``second``; returns (trained, loaded)."""
+    from baselines import create_method
+
+    a = create_method(method, scene, fit_config(method), device=first)
+    for s in range(steps):
+        a.train_step(s)
+    a.save(path)
+    b = create_method(method, scene, fit_config(method), device=second)
+    b.load(path)
+    return a, b

@@ -9,14 +9,14 @@ import logging
 
 import pytest
 import torch
-from device_check import StrayTensors, only_device
+from device_check import StrayTensors, fit_config, only_device, train_save_load
 
 from baselines import create_method
 from protocols.results import read_result
 from protocols.run import run_experiment
 from smgs.data.patterns import pattern_scene
 from smgs.device import DeviceError, check_backend, device_name, resolve_device, restore_generator
-from smgs.train import pattern_config, to_dict
+from smgs.train import pattern_config
 from smgs.train.trainer import Trainer
 
 CPU = torch.device("cpu")
@@ -36,16 +36,6 @@ def two_gpus(monkeypatch):
 @pytest.fixture
 def no_gpu(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-
-
-def _fit_config(method: str = "softmax_gs", steps: int = 30) -> dict:
-    """A 2D fit that clones, splits, prunes and resets opacities within a few steps, on a random
-    background: every path of a training step that makes tensors."""
-    cfg = to_dict(pattern_config(method, cap=12, steps=steps))
-    cfg["densify"].update(refine_start=1, refine_every=3, reset_every=6)
-    cfg["gaussians"].update(flat_spacing=0.05, flat_scale=0.1)
-    cfg["random_background"] = True
-    return cfg
 
 
 # -- resolution and bad input ---------------------------------------------------------------
@@ -167,7 +157,7 @@ def test_auto_on_a_cpu_machine_is_the_same_cell_as_cpu(tmp_path, no_gpu):
 
 
 def test_every_part_of_a_method_gets_the_device():
-    m = create_method("softmax_gs", pattern_scene("circle4", 8), _fit_config(), device="cpu")
+    m = create_method("softmax_gs", pattern_scene("circle4", 8), fit_config("softmax_gs"), device="cpu")
     tr = m.trainer
     assert m.device == CPU and tr.device == CPU and tr.strategy.device == CPU
     assert tr.gen.device == CPU and tr.strategy.gen.device == CPU
@@ -200,7 +190,7 @@ def test_the_check_catches_the_strategy_statistics_as_they_were(monkeypatch):
     scene = pattern_scene("circle4", 12)
     with pytest.raises(StrayTensors, match=r"tests/test_device.py:\d+ +self.grad2d = torch.zeros\(n\)"):
         with only_device(CPU):
-            m = create_method("3dgs", scene, _fit_config("3dgs"), device=CPU)
+            m = create_method("3dgs", scene, fit_config("3dgs"), device=CPU)
             for s in range(4):
                 m.train_step(s)
 
@@ -209,12 +199,7 @@ def test_the_check_catches_the_strategy_statistics_as_they_were(monkeypatch):
 def test_training_evaluation_and_resume_make_tensors_only_on_the_run_device(tmp_path, method):
     scene = pattern_scene("circle4", 12)
     with only_device(CPU):
-        a = create_method(method, scene, _fit_config(method), device=CPU)
-        for s in range(8):
-            a.train_step(s)
-        a.save(tmp_path / "ck")
-        b = create_method(method, scene, _fit_config(method), device=CPU)
-        b.load(tmp_path / "ck")
+        a, b = train_save_load(method, scene, CPU, CPU, tmp_path / "ck", steps=8)
         for s in range(8, 12):
             b.train_step(s)
         out = b.render(scene.test[0].camera)
@@ -267,7 +252,7 @@ def test_a_protocol_cell_trains_evaluates_and_resumes_on_the_run_device(tmp_path
 
 def test_a_generator_state_from_another_kind_of_device_reseeds_deterministically(caplog):
     scene = pattern_scene("circle4", 8)
-    a = create_method("3dgs", scene, _fit_config("3dgs"), device=CPU)
+    a = create_method("3dgs", scene, fit_config("3dgs"), device=CPU)
     a.train_step(0)
     state = a.trainer.state_dict()
     assert state["gen"]["device_type"] == "cpu" and state["device"] == "cpu"
@@ -275,7 +260,7 @@ def test_a_generator_state_from_another_kind_of_device_reseeds_deterministically
     state["strategy"]["gen"] = {"device_type": "cuda", "state": torch.arange(16, dtype=torch.uint8)}
     draws = []
     for _ in range(2):
-        b = create_method("3dgs", scene, _fit_config("3dgs"), device=CPU)
+        b = create_method("3dgs", scene, fit_config("3dgs"), device=CPU)
         with caplog.at_level(logging.WARNING):
             b.trainer.load_state_dict(state)
         draws.append(torch.rand(4, generator=b.trainer.gen, device=CPU))

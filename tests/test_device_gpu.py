@@ -6,26 +6,18 @@ from __future__ import annotations
 
 import pytest
 import torch
+from device_check import fit_config, train_save_load
 
 from baselines import create_method
 from protocols.results import read_result
 from protocols.run import run_experiment
 from smgs.data.patterns import pattern_scene
-from smgs.train import pattern_config, to_dict
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 
 METHODS = ("3dgs", "gef_only", "softmax_only", "softmax_gs")
 CPU = torch.device("cpu")
-
-
-def _fit_config(method: str) -> dict:
-    cfg = to_dict(pattern_config(method, cap=12, steps=40))
-    cfg["densify"].update(refine_start=1, refine_every=3, reset_every=6)
-    cfg["gaussians"].update(flat_spacing=0.05, flat_scale=0.1)
-    cfg["random_background"] = True
-    return cfg
 
 
 def test_smoke_200_steps_of_every_method_on_cuda(tmp_path):
@@ -46,12 +38,7 @@ def test_smoke_200_steps_of_every_method_on_cuda(tmp_path):
 @pytest.mark.parametrize("first, second", [("cuda", "cpu"), ("cpu", "cuda")])
 def test_resume_across_devices(tmp_path, method, first, second):
     scene = pattern_scene("circle4", 32)
-    a = create_method(method, scene, _fit_config(method), device=first)
-    for s in range(10):
-        a.train_step(s)
-    a.save(tmp_path / "ck")
-    b = create_method(method, scene, _fit_config(method), device=second)
-    b.load(tmp_path / "ck")
+    a, b = train_save_load(method, scene, first, second, tmp_path / "ck", steps=10)
     dev = b.device
     assert dev.type == second
     assert all(p.device == dev for p in b.trainer.gaussians.params.values())
@@ -71,7 +58,7 @@ def test_a_gpu_run_is_bit_reproducible_in_its_forward_only(method):
     """Same seed, same GPU: the initialisation and the first render are identical; later steps
     may differ in the last bits (the backward accumulates with atomics, whose order varies)."""
     scene = pattern_scene("circle4", 32)
-    a, b = (create_method(method, scene, _fit_config(method), device="cuda") for _ in range(2))
+    a, b = (create_method(method, scene, fit_config(method), device="cuda") for _ in range(2))
     for name, p in a.trainer.gaussians.params.items():
         assert torch.equal(p, b.trainer.gaussians.params[name])
     cam = scene.test[0].camera

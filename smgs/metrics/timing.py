@@ -24,7 +24,8 @@ import torch
 from smgs.device import device_name  # noqa: F401  (re-exported: reports and bench import it here)
 
 
-def _sync(device: torch.device) -> None:
+def synchronize(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (a GPU runs asynchronously; the CPU needs nothing)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -58,13 +59,13 @@ def measure_render_fps(render: Callable[[Any], Any], cameras: Sequence[Any], *, 
     with torch.no_grad():
         for i in range(warmup):
             render(cameras[i % len(cameras)])
-        _sync(dev)
+        synchronize(dev)
         per_view = []
         for _ in range(repeats):
             t0 = time.perf_counter()
             for cam in cameras:
                 render(cam)
-            _sync(dev)
+            synchronize(dev)
             per_view.append((time.perf_counter() - t0) / len(cameras))
     med = statistics.median(per_view)
     return FPSResult(fps=(1.0 / med) if med > 0 else float("inf"), median_seconds_per_view=med,
@@ -118,13 +119,13 @@ def track_peak_memory(device: torch.device | str) -> Iterator[PeakMemory]:
     """``with track_peak_memory(dev) as pm: ...``; afterwards ``pm.bytes`` and ``pm.kind``."""
     dev = torch.device(device)
     if dev.type == "cuda":
-        _sync(dev)
+        synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         pm = PeakMemory(device_name(dev), "cuda_max_memory_allocated")
         try:
             yield pm
         finally:
-            _sync(dev)
+            synchronize(dev)
             pm.bytes = int(torch.cuda.max_memory_allocated(dev))
         return
     if _reset_vm_hwm() and _vm_hwm_bytes() is not None:
@@ -154,12 +155,12 @@ class TrainClock:
     @contextmanager
     def _timed(self, sink: Callable[[float], None]) -> Iterator[None]:
         dev = torch.device(self.device)
-        _sync(dev)
+        synchronize(dev)
         t0 = time.perf_counter()
         try:
             yield
         finally:
-            _sync(dev)
+            synchronize(dev)
             sink(time.perf_counter() - t0)
 
     def training(self) -> AbstractContextManager[None]:
