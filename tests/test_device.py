@@ -114,6 +114,19 @@ def test_the_runner_refuses_gpu_settings_this_machine_cannot_honour(tmp_path, tw
     assert not any(tmp_path.iterdir())
 
 
+def test_cells_for_a_cluster_are_checked_for_spelling_here_and_for_hardware_on_their_node(no_gpu):
+    from protocols.run import check_devices
+
+    cell = {"key": "k", "config": {"device": "cuda", "backend": "auto"}}
+    check_devices([cell], "slurm")                    # the GPU is on the node, not here
+    with pytest.raises(SystemExit, match="asks for CUDA"):
+        check_devices([cell], "local")
+    for bad, message in (({"device": "gpu"}, "unknown device 'gpu'"),
+                         ({"device": "cuda:1", "backend": "cpu"}, "backend=cpu renders on the CPU only")):
+        with pytest.raises(SystemExit, match=message):
+            check_devices([{"key": "k", "config": bad}], "slurm")
+
+
 def test_a_cell_whose_node_lacks_the_device_fails_without_a_run_directory(tmp_path, no_gpu):
     from protocols.cell import run_cell
 
