@@ -163,6 +163,22 @@ def test_device_cpu_reaches_results_and_the_report_names_it(tmp_path):
     assert "device: " + name in (tmp_path / "patterns/circle4/softmax_gs/cap4/seed0/log.txt").read_text()
 
 
+def test_table1_runner_and_training_bench_take_the_device(tmp_path):
+    import csv
+
+    from bench.train import main as bench_main
+    from protocols.patterns import main as patterns_main
+
+    assert patterns_main(["--patterns", "circle4", "--methods", "3dgs", "--counts", "4", "--seeds", "0",
+                          "--steps", "2", "--size", "8", "--no-renders", "--device", "cpu",
+                          "--out", str(tmp_path / "t1")]) == 0
+    rows = list(csv.DictReader((tmp_path / "t1/cells.csv").open()))
+    assert [(r["status"], r["device"]) for r in rows] == [("ok", device_name(CPU))]
+    assert bench_main(["--scenes", "pattern4", "--methods", "3dgs", "--steps", "1", "--warmup", "0",
+                       "--device", "cpu", "--json", str(tmp_path / "b.json")]) == 0
+    assert json.loads((tmp_path / "b.json").read_text())[0]["device"] == device_name(CPU)
+
+
 def test_auto_on_a_cpu_machine_is_the_same_cell_as_cpu(tmp_path, no_gpu):
     run_experiment(TINY + [f"out_dir={tmp_path}", "device=cpu"])
     again = run_experiment(TINY + [f"out_dir={tmp_path}", "device=auto"])

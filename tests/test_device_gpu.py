@@ -63,3 +63,19 @@ def test_a_gpu_run_is_bit_reproducible_in_its_forward_only(method):
         assert torch.equal(p, b.trainer.gaussians.params[name])
     cam = scene.test[0].camera
     assert torch.equal(a.render(cam).rgb, b.render(cam).rgb)
+
+
+def test_table1_runner_and_training_bench_on_cuda(tmp_path):
+    import csv
+    import json
+
+    from bench.train import main as bench_main
+    from protocols.patterns import main as patterns_main
+
+    assert patterns_main(["--patterns", "circle4", "--counts", "4", "--seeds", "0", "--steps", "200",
+                          "--device", "cuda", "--out", str(tmp_path / "t1")]) == 0
+    rows = list(csv.DictReader((tmp_path / "t1/cells.csv").open()))
+    assert all(r["status"] == "ok" and r["device"].startswith("cuda:0 ") and r["backend"] == "cuda" for r in rows)
+    assert bench_main(["--scenes", "pattern256", "scene3d", "--steps", "20", "--device", "cuda",
+                       "--json", str(tmp_path / "b.json")]) == 0
+    assert all(r["device"].startswith("cuda:0 ") for r in json.loads((tmp_path / "b.json").read_text()))
