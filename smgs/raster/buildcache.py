@@ -172,7 +172,7 @@ def _heartbeat(what: str, expected: float | None, every_s: float, say: Callable[
     def run() -> None:
         while not stop.wait(every_s):
             tail = f" of ~{expected:.0f} s expected" if expected else ""
-            say(f"still building {what}: {time.monotonic() - start:.0f} s{tail}")
+            say(f"still building the {what}: {time.monotonic() - start:.0f} s{tail}")
 
     threading.Thread(target=run, daemon=True, name="smgs-build-heartbeat").start()
     return stop

@@ -2,8 +2,9 @@
 
 Built just in time with ``torch.utils.cpp_extension.load`` on first use and cached (in
 ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``) by a key of the sources, flags and CPU
-kind (``smgs.raster.buildcache``); later processes load the cached library in well under a second. The sources are ``csrc/cpu_kernel.cpp`` and ``csrc/splat_math.h``
-(the per-splat math shared with other compiled backends). Same images and gradients as
+kind (``smgs.raster.buildcache``); later processes load the cached library in well under a second.
+The sources are ``csrc/cpu_kernel.cpp`` and ``csrc/splat_math.h`` (the per-splat math shared with
+other compiled backends). Same images and gradients as
 ``smgs.raster.reference`` to float32 rounding (tests/test_raster_cpu.py states the tolerances).
 
 Set ``SMGS_DISABLE_CPU_BACKEND=1`` to make ``is_available()`` report False (``auto`` then falls back

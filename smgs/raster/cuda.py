@@ -3,7 +3,8 @@ hand-written backward, one thread per pixel (the 3DGS layout).
 
 Built just in time with ``torch.utils.cpp_extension.load`` on first use, when PyTorch is a CUDA
 build, a CUDA device is visible and the CUDA toolkit (nvcc) is found; cached like the CPU
-backend (``smgs.raster.buildcache``). Sources: ``csrc/cuda_kernel.cu`` (kernels and launchers, no torch types), ``csrc/cuda_binding.cpp``
+backend (``smgs.raster.buildcache``, keyed by the sources, flags and GPU archs). Sources:
+``csrc/cuda_kernel.cu`` (kernels and launchers, no torch types), ``csrc/cuda_binding.cpp``
 (tensors and the binning pipeline's host steps) and ``csrc/splat_math.h``, the per-splat math the CPU
 kernel includes too, so the GPU runs the math the CPU tests check.
 
@@ -72,7 +73,7 @@ def _build(suffix: str = "", defines: tuple[str, ...] = ()):
     return compile_and_load(ExtensionSpec(
         name=f"smgs_raster_cuda{suffix}", sources=tuple(_CSRC / s for s in SOURCES), what="CUDA renderer backend",
         include_dirs=(_CSRC,), cflags=tuple(CFLAGS) + defines, cuda_cflags=tuple(CUDA_CFLAGS) + defines,
-        target=f"sm{_arch_tag()}"))
+        target=f"sm{_arch_tag()} {os.environ.get('TORCH_CUDA_ARCH_LIST', '')}"))
 
 
 # no CUDA here is the common case, not worth a warning: quiet_precheck
