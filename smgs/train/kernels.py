@@ -19,9 +19,10 @@ def prepare_kernels(backend: str = "auto", device: torch.device | str = "cpu",
     device = torch.device(device)
     name = resolve_backend(backend, device, dtype)
     if name != "reference":
-        # one tiny render through the public entry point builds exactly the variant the run needs
-        z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
-        rasterize_splats(z(1, 2), torch.ones(1, 3, device=device, dtype=dtype), z(1), z(1, 3), z(1), None, None, None,
+        # one tiny render (a plain valid splat) through the public entry point builds exactly the
+        # variant the run needs
+        t = lambda *v: torch.tensor(v, device=device, dtype=dtype)  # noqa: E731
+        rasterize_splats(t([2.0, 2.0]), t([1.0, 0.0, 1.0]), t(0.5), t([0.5, 0.5, 0.5]), t(1.0), None, None, None,
                          4, 4, mode="3dgs", backend=name, t_min=t_min)
     if device.type == "cpu" and dtype == torch.float32:
         if name != "reference":   # the reference renderer keeps its projection in PyTorch
