@@ -26,7 +26,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Callable
@@ -56,7 +56,6 @@ class ExtensionSpec:
     cuda_cflags: tuple[str, ...] = ()
     ldflags: tuple[str, ...] = ()
     target: str = ""
-    lock_timeout: float | None = field(default=None, compare=False)
 
 
 def source_closure(sources: tuple[Path, ...], include_dirs: tuple[Path, ...]) -> list[Path]:
@@ -188,7 +187,7 @@ def compile_and_load(spec: ExtensionSpec, say: Callable[[str], None] = _say, hea
     lib = _library(build_dir, name)
     if _read_json(build_dir / MARKER).get("module") == name and lib.is_file():
         return _import(name, lib)
-    with BuildLock(build_dir, spec.what, timeout=spec.lock_timeout, say=say):
+    with BuildLock(build_dir, spec.what, say=say):
         if _read_json(build_dir / MARKER).get("module") == name and lib.is_file():
             return _import(name, lib)   # built by the process we waited for
         expected = last_build_seconds(root, spec.name)
