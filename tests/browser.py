@@ -10,6 +10,7 @@ import os
 import queue
 import shutil
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -35,23 +36,35 @@ class BrowserError(RuntimeError):
     pass
 
 
+def _above(fd: int, low: int) -> int:
+    import fcntl
+
+    new = fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, low)
+    os.close(fd)
+    return new
+
+
 class Browser:
     """One headless browser with one page. ``events`` collects every protocol event of the page."""
 
     def __init__(self, exe: str, width: int = 1280, height: int = 900, timeout: float = 60.0) -> None:
         self.timeout = timeout
         self.profile = tempfile.mkdtemp(prefix="smgs-chromium-")
+        self._log = Path(self.profile) / "stderr.log"
         to_child_r, self._to_child = os.pipe()
         self._from_child, from_child_w = os.pipe()
+        # the child's ends above fd 4, so that moving them to 3 and 4 (a small Python exec wrapper; dash
+        # cannot redirect fds above 9) cannot overwrite one another
+        to_child_r, from_child_w = (_above(fd, 5) for fd in (to_child_r, from_child_w))
         args = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
                 "--no-default-browser-check", "--disable-extensions", "--disable-background-networking",
                 "--disable-component-update", "--disable-sync", "--mute-audio", "--hide-scrollbars",
                 f"--user-data-dir={self.profile}", f"--window-size={width},{height}", "--remote-debugging-pipe",
                 "about:blank"]
-        # the shell moves our pipe ends to fds 3 and 4, where Chromium expects them
-        self.proc = subprocess.Popen(["/bin/sh", "-c", f'exec "$0" "$@" 3<&{to_child_r} 4>&{from_child_w}', exe, *args],
-                                     pass_fds=(to_child_r, from_child_w), stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE)
+        move = "import os, sys; os.dup2(int(sys.argv[1]), 3); os.dup2(int(sys.argv[2]), 4); os.execv(sys.argv[3], sys.argv[3:])"
+        with open(self._log, "wb") as log:  # a file: a full pipe would stall the browser
+            self.proc = subprocess.Popen([sys.executable, "-c", move, str(to_child_r), str(from_child_w), exe, *args],
+                                         pass_fds=(to_child_r, from_child_w), stdout=subprocess.DEVNULL, stderr=log)
         os.close(to_child_r)
         os.close(from_child_w)
         self._next = 0
@@ -98,7 +111,10 @@ class Browser:
         msg = {"id": mid, "method": method, "params": params or {}}
         if session:
             msg["sessionId"] = self.session
-        os.write(self._to_child, json.dumps(msg).encode() + b"\0")
+        try:
+            os.write(self._to_child, json.dumps(msg).encode() + b"\0")
+        except BrokenPipeError:
+            raise BrowserError(f"the browser exited: {self._stderr()}") from None
         try:
             reply = q.get(timeout=timeout or self.timeout)
         except queue.Empty:
@@ -106,6 +122,12 @@ class Browser:
         if "error" in reply:
             raise BrowserError(f"{method}: {reply['error']}")
         return reply.get("result", {})
+
+    def _stderr(self) -> str:
+        if self.proc.poll() is None:
+            return "(still running)"
+        err = self._log.read_text(errors="replace") if self._log.is_file() else ""
+        return f"exit status {self.proc.returncode}: {err.strip()[-2000:]}"
 
     # -- page -------------------------------------------------------------------------------------
     def open(self, path: Path) -> float:

@@ -8,11 +8,20 @@ Contents (chosen so each report rule has a case):
   (out of memory); bicycle 3dgs 5pct without LPIPS (weights absent); Table 4 consistency on bicycle.
 - tandt: train skipped (dataset missing).
 - colmap/fern: the cpu preset, 3dgs and softmax_gs at 5pct.
+- with ``images=True`` (report.html): the Mip-NeRF360 runs' saved renders, ground truth and |error| maps of
+  three views (garden softmax_gs 5pct saved no ground truth: an older run), per-view PSNR, and on bicycle the
+  consistency scores per frame pair with a popping strip.
+
+``make_hostile_tree``: runs whose method, preset, scene and error hold HTML and script (escaping).
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
+
+import numpy as np
+from PIL import Image
 
 from protocols.results import CurvePoint, RunResult, write_result
 
@@ -50,11 +59,43 @@ def _ok(method, dataset, scene, budget, seed, psnr, *, gs, seconds=600.0, fps=20
     return r
 
 
-def make_tree(root: Path) -> Path:
+VIEWS = ("_DSC8679", "_DSC8687", "_DSC8695")
+
+
+def _png(path: Path, seed: int, size: tuple[int, int] = (48, 32)) -> None:
+    rng = np.random.default_rng(seed)
+    img = (rng.random((size[1], size[0], 3)) * 255).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    path.write_bytes(buf.getvalue())
+
+
+def add_images(run_dir: Path, r: RunResult, gt: bool = True) -> RunResult:
+    """The images a run saves (protocols.view_images), on the result before it is written."""
+    for k, v in enumerate(VIEWS):
+        _png(run_dir / "renders" / f"{v}.png", k + 10 * len(r.method))
+        if gt:
+            _png(run_dir / "renders" / "gt" / f"{v}.png", k)
+            _png(run_dir / "renders" / "error" / f"{v}.png", k + 100)
+    r.per_view = {"name": [f"{v}.JPG" for v in VIEWS], "psnr": [r.metrics.get("psnr", 20.0) + 0.5 * k for k in range(3)]}
+    if r.consistency:
+        r.consistency["scores"] = {"7": {"per_pair": [{"i": i, "j": i + 7, "mse": 0.01 + 0.02 * (i == 5), "flip": 0.03,
+                                                       "valid_fraction": 0.8} for i in range(20)]}}
+        _png(run_dir / "consistency" / "strip.png", 7, (8 * 24, 16))
+        (run_dir / "consistency" / "strip.json").write_text(
+            '{"frames": [5, 6, 7, 8, 9, 10, 11, 12], "pair": [5, 12], "mse": 0.03, "step": 7, "why": "worst pair"}')
+    return r
+
+
+def make_tree(root: Path, images: bool = False) -> Path:
     root = Path(root)
 
     def put(r: RunResult) -> None:
-        write_result(root / r.dataset / r.scene / r.method / r.budget / f"seed{r.seed}", r)
+        d = root / r.dataset / r.scene / r.method / r.budget / f"seed{r.seed}"
+        if images and r.status == "ok" and r.dataset == "mipnerf360":
+            add_images(d, r, gt=(r.scene, r.method, r.budget) != ("garden", "softmax_gs", "5pct"))
+        write_result(d, r)
 
     # Table 1: circle4, two methods, two caps, two seeds
     base = {"3dgs": {4: 18.0, 16: 22.0}, "softmax_gs": {4: 28.5, 16: 32.0}}
@@ -102,4 +143,24 @@ def make_tree(root: Path) -> Path:
     # a user COLMAP scene under the cpu preset
     for m, p in (("3dgs", 20.1), ("softmax_gs", 21.3)):
         put(_ok(m, "colmap", "fern", "5pct", 0, p, gs=20_000, seconds=240.0, fps=3.0, preset="cpu"))
+    return root
+
+
+HOSTILE_METHOD = "<img src=x onerror=window.__pwned=1>"
+HOSTILE_PRESET = "</script><script>window.__pwned=2</script>"
+HOSTILE_SCENE = "a\"'><b>bold&amp;"
+HOSTILE_ERROR = "</td></tr></table><script>window.__pwned=3</script> & <!-- unclosed"
+
+
+def make_hostile_tree(root: Path) -> Path:
+    """Strings from configs, paths and errors that are HTML: report.html must show them as text."""
+    root = Path(root)
+    for m, preset in ((HOSTILE_METHOD, "paper"), ("3dgs", HOSTILE_PRESET)):
+        r = _ok(m, "mipnerf360", HOSTILE_SCENE, "full", 0, 24.0, gs=1000, preset=preset)
+        d = root / "mipnerf360" / HOSTILE_SCENE / m / "full" / "seed0"
+        add_images(d, r)
+        write_result(d, r)
+    write_result(root / "mipnerf360" / HOSTILE_SCENE / "softmax_gs" / "full" / "seed0",
+                 RunResult(method="softmax_gs", dataset="mipnerf360", scene=HOSTILE_SCENE, budget="full", seed=0,
+                           status="failed", error=HOSTILE_ERROR, versions=dict(VERSIONS)))
     return root

@@ -91,6 +91,11 @@ def time_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
                 "hovertemplate": "run %{customdata[0]}<br>method %{customdata[1]} · budget %{customdata[2]} · "
                                  "seed %{customdata[3]} · preset %{customdata[4]}<br>step %{customdata[5]}: "
                                  "%{x:.1f} s, PSNR %{y:.2f} dB, %{customdata[6]} Gaussians<extra></extra>"})
+        if len(budgets) > 1:  # a legend entry per line style (hover names the budget of each curve too)
+            data += [{"type": "scatter", "mode": "lines", "x": [None], "y": [None], "name": pt(f"budget {b}"),
+                      "legendgroup": pt(f"budget {b}"), "hoverinfo": "skip",
+                      "line": {"color": "black", "dash": DASHES[i % len(DASHES)], "width": 1.5}}
+                     for i, b in enumerate(budgets)]
         xs_all = [x for d in data for x in d["x"] if x and x > 0]
         log_x = bool(xs_all) and max(xs_all) / min(xs_all) > 50
         figs.append(Figure(f"fig-time-{k}", panel, "Test-view PSNR against train seconds (evaluation excluded), "

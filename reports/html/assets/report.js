@@ -84,8 +84,9 @@
   }
 
   /* ---- test-view viewers: ground truth | each method | |error|, side by side or flipped in place ---- */
-  function image(src, alt) {
+  function image(src, alt, caption) {
     var fig = el("figure", { "class": "tile" });
+    if (caption) fig.appendChild(el("figcaption", {}, caption));
     if (src) {
       var img = el("img", { src: src, alt: alt, loading: "lazy", decoding: "async", title: alt });
       img.addEventListener("error", function () {
@@ -125,14 +126,16 @@
       if (modeSel.value === "grid") {
         var grid = el("div", { "class": "tiles" });
         var col = el("div", { "class": "col" });
-        col.appendChild(el("div", { "class": "cap" }, "ground truth"));
-        col.appendChild(image(gt, "ground truth " + view));
+        col.appendChild(el("div", { "class": "cap" }, view));
+        col.appendChild(image(gt, "ground truth " + view, "ground truth"));
         grid.appendChild(col);
         g.runs.forEach(function (r) {
           var c = el("div", { "class": "col" });
           c.appendChild(el("div", { "class": "cap", title: r.run }, r.method + " " + fmt(r.psnr[view])));
-          c.appendChild(image(r.render[view], r.method + " render " + view + " (" + r.run + ")"));
-          if (gt || r.error[view]) c.appendChild(image(r.error[view], r.method + " |error| " + view + " (" + r.run + ")"));
+          c.appendChild(image(r.render[view], r.method + " render " + view + " (" + r.run + ")", "render"));
+          if (gt || r.error[view]) {
+            c.appendChild(image(r.error[view], r.method + " |error| " + view + " (" + r.run + ")", "|error|"));
+          }
           grid.appendChild(c);
         });
         stage.appendChild(grid);
