@@ -228,5 +228,12 @@ def test_hostile_strings_stay_text_in_the_browser(hostile, tmp_path):
             assert raw in text, raw
         legend = b.eval("[...document.querySelectorAll('.legendtext')].map(t => t.textContent)")
         assert HOSTILE_METHOD in legend
+        hover = b.eval("(() => { const d = document.getElementById('fig-time-0'); d.scrollIntoView(); "
+                       "const i = d.data.findIndex(t => t.name && t.name.includes('onerror')); "
+                       "Plotly.Fx.hover(d, [{curveNumber: i, pointNumber: 0}]); "
+                       "return document.querySelector('#fig-time-0 .hovertext').textContent; })()")
+        assert f"method {HOSTILE_METHOD}" in hover, hover
         assert b.problems() == []
-        b.screenshot(tmp_path / "hostile.png")
+        shots = Path(os.environ.get("SMGS_SCREENSHOT_DIR") or tmp_path)
+        shots.mkdir(parents=True, exist_ok=True)
+        b.screenshot(shots / "report_hostile.png", "#problems-table")

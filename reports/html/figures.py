@@ -13,7 +13,7 @@ from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
-from reports.diagnostics import PARAM_LABELS, _names, _param_groups, _summary
+from reports.diagnostics import PARAM_LABELS, param_names, param_groups, param_summary
 from reports.html.escape import plotly_text as pt
 from reports.paper import budget_rank, dataset_rank, method_label, method_rank, scene_rank
 from reports.plots import Point, color, pareto_front, panel_name
@@ -211,8 +211,8 @@ def _pairs(run: Run) -> list[dict]:
 # ---- learned α, β, γ ----------------------------------------------------------------------------
 
 def params_figure(runs: list[Run]) -> Figure | None:
-    groups = _param_groups([x.r for x in runs])
-    names = _names(groups)
+    groups = param_groups([x.r for x in runs])
+    names = param_names(groups)
     if not names:
         return None
     order = sorted(groups, key=lambda k: (dataset_rank(k[0]), row_order((k[1], k[2], k[3]))))
@@ -220,7 +220,7 @@ def params_figure(runs: list[Run]) -> Figure | None:
     seen: set = set()
     for i, name in enumerate(names):
         for key in order:
-            s = _summary(groups[key], name)
+            s = param_summary(groups[key], name)
             if not s or not all(q in s for q in ("p05", "p25", "p50", "p75", "p95")):
                 continue
             ds, m, b, p = key
