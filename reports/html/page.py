@@ -129,7 +129,7 @@ def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: s
         "<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; img-src 'self' file: data: blob:; "
         "style-src 'unsafe-inline'; script-src 'unsafe-inline' 'unsafe-eval'; font-src data:\">",
         f"<title>smgs report — {esc(runs_dir.name)}</title>", f"<style>{css}</style>",
-        f"<script>{js}</script>" if js else "", "</head><body>", nav, *body,
+        f"<script>{js}</script>" if js else "", "</head><body>", body[0], nav, *body[1:],
         f'<script type="application/json" id="report-data">{script_json(data)}</script>',
         f"<script>{script}</script>", "</body></html>", ""])
 
