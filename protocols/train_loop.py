@@ -19,6 +19,7 @@ from tqdm import tqdm
 from baselines.registry import create_method
 from protocols.datasets import load_scene_for
 from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
+from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
@@ -212,6 +213,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     if ev.get("save_renders", True):
         for n, img in zip(names, renders):
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
+        save_view_images(run_dir / "renders", names, renders, gts, int(ev.get("viewer_views", 3)))
     m = evaluate_images(renders, gts, names, lpips_net=ev.get("lpips_net", "vgg"),
                         lpips_weights=ev.get("lpips_weights"), lpips_input=ev.get("lpips_input", "3dgs"), flip=bool(ev.get("flip", True)),
                         quantize=bool(ev.get("quantize", True)), device=device)
@@ -283,6 +285,9 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
     row = consistency_row(render, traj, scene=scene.name, method=method.name if hasattr(method, "name") else "",
                           test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.get("flow", "geometric"))
     out = row.to_json()
+    pairs = out.get("scores", {}).get(str(row.step), {}).get("per_pair", [])
+    if ev.get("save_renders", True):
+        save_popping_strip(run_dir / "consistency", render, traj, pairs, row.step)
     out["mask"] = "per-method"
     out["width"], out["height"] = traj[0].width, traj[0].height
     return out

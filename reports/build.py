@@ -2,7 +2,7 @@
 
 Reads every results.json below RUNS_DIR and writes, into DIR (default RUNS_DIR/report):
 ``report.md``, ``tables/<table>.csv`` (one per table, long format), ``tables/runs.csv`` (every run),
-``plots/*.png``. Every file is written atomically (temp file + rename); files of a previous build
+``plots/*.png`` and ``report.html`` (the same report as one interactive page, ``reports/html/``). Every file is written atomically (temp file + rename); files of a previous build
 that this build does not produce are removed (only those the previous build listed in its manifest).
 """
 
@@ -22,6 +22,7 @@ from pathlib import Path
 from protocols.results import RunResult, atomic_write_bytes, atomic_write_text
 from reports.diagnostics import diagnostics_section
 from reports.environment import environment_markdown
+from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
 from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
@@ -31,6 +32,7 @@ from reports.tables import Context, table1, table2, table3, table4, table5
 from reports.tradeoff import tradeoff_points
 
 REPORT = "report.md"
+HTML = "report.html"
 MANIFEST = ".report_files.json"
 MAX_LISTED_FAILURES = 50
 
@@ -79,6 +81,9 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
         files[f"plots/{p.name}"] = p.png
 
     md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files)
+    files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
+                              plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
+                              csv_link=lambda name: _link(files, name)).encode()
     _write(out, files, md)
     return out / REPORT
 

@@ -95,7 +95,7 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
                  ["k_max", "vs paper range"], rank="none"), notes
 
 
-def _param_groups(runs: list[RunResult]) -> dict[tuple, list[dict]]:
+def param_groups(runs: list[RunResult]) -> dict[tuple, list[dict]]:
     """(dataset, method, budget, preset) -> the runs' params dicts; pattern fits pooled over caps."""
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
@@ -107,12 +107,12 @@ def _param_groups(runs: list[RunResult]) -> dict[tuple, list[dict]]:
     return groups
 
 
-def _names(groups: dict[tuple, list[dict]]) -> list[str]:
+def param_names(groups: dict[tuple, list[dict]]) -> list[str]:
     names = {n for ps in groups.values() for p in ps for n in p}
     return [n for n in PARAM_ORDER if n in names] + sorted(names - set(PARAM_ORDER))
 
 
-def _summary(params: list[dict], name: str) -> dict[str, float] | None:
+def param_summary(params: list[dict], name: str) -> dict[str, float] | None:
     """Median over runs of each run's quantile (runs that lack a key are left out of that key)."""
     out = {}
     for q in QUANTILES:
@@ -131,15 +131,15 @@ def _summary(params: list[dict], name: str) -> dict[str, float] | None:
 
 
 def params_table(runs: list[RunResult], ctx: Context) -> Table | None:
-    groups = _param_groups(runs)
+    groups = param_groups(runs)
     if not groups:
         return None
     cols = [Column(q, q, sig) for q in QUANTILES]
     rows = []
     order = sorted(groups, key=lambda k: (dataset_rank(k[0]), row_order((k[1], k[2], k[3]))))
-    for name in _names(groups):
+    for name in param_names(groups):
         for key in order:
-            s = _summary(groups[key], name)
+            s = param_summary(groups[key], name)
             if s is None:
                 continue
             ds, m, b, p = key
@@ -155,8 +155,8 @@ def params_table(runs: list[RunResult], ctx: Context) -> Table | None:
 
 
 def params_plot(runs: list[RunResult]) -> Plot | None:
-    groups = _param_groups(runs)
-    names = _names(groups)
+    groups = param_groups(runs)
+    names = param_names(groups)
     if not names:
         return None
     fig = Figure(figsize=(4.5 * len(names), 3.6), layout="constrained")
@@ -165,7 +165,7 @@ def params_plot(runs: list[RunResult]) -> Plot | None:
         ax = fig.add_subplot(1, len(names), i + 1)
         stats, colors, labels = [], [], []
         for key in order:
-            s = _summary(groups[key], name)
+            s = param_summary(groups[key], name)
             if not s or not all(q in s for q in ("p05", "p25", "p50", "p75", "p95")):
                 continue
             ds, m, b, p = key

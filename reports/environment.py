@@ -56,12 +56,17 @@ def _runs_value(runs: list[RunResult], key: str) -> str:
     return "mixed: " + "; ".join(f"{v} ({n} runs)" for v, n in vals.most_common())
 
 
+def environment_rows(runs: list[RunResult], machine: dict[str, str]) -> list[tuple[str, str, str]]:
+    """(item, what the runs recorded, this machine) per line of the environment block."""
+    rows = [(label, _runs_value(runs, key), machine.get(key, "not recorded")) for key, label in ITEMS]
+    return rows + [("matplotlib", "—", machine.get("matplotlib", "unknown"))]
+
+
 def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None) -> str:
     machine = machine if machine is not None else this_machine()
     lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
-    for key, label in ITEMS:
-        lines.append(f"| {label} | {_esc(_runs_value(runs, key))} | {_esc(machine.get(key, 'not recorded'))} |")
-    lines.append(f"| matplotlib | — | {_esc(machine.get('matplotlib', 'unknown'))} |")
+    for label, ran, here in environment_rows(runs, machine):
+        lines.append(f"| {label} | {_esc(ran)} | {_esc(here)} |")
     devices = sorted({r.render_device for r in runs if r.render_device})
     out = ["\n".join(lines), ""]
     if devices:

@@ -133,47 +133,59 @@ class Table:
                     out[cell] = texts.index(t) + 1
         return out
 
-    # -- markdown ---------------------------------------------------------------------------
-    def markdown(self) -> str:
+    # -- cells (shared by markdown and HTML) -------------------------------------------------
+    def grid(self) -> "Grid":
+        """Header, cells and footnotes as every renderer shows them."""
         notes = Footnotes()
         ranks = self.ranks()
         header = list(self.key_columns)
+        numeric = [False] * len(header)
         for c in self.columns:
             header.append(c.label)
             if c.compare:
                 header += ["paper", "×paper" if c.compare == "ratio" else "Δ"]
+            numeric += [True] * (3 if c.compare else 1)
         header += self.info_columns
-        n_text_right = len(self.info_columns)
-        align = [":--" if i < len(self.key_columns) or i >= len(header) - n_text_right else "--:"
-                 for i in range(len(header))]  # text left, numbers right
-        lines = ["| " + " | ".join(_esc(h) for h in header) + " |", "|" + "|".join(align) + "|"]
+        numeric += [False] * len(self.info_columns)
+        rows = []
         for i, row in enumerate(self.rows):
-            cells = list(row.keys)
+            cells = [Cell(k) for k in row.keys]
             if cells:  # the row's label is its last key cell
-                cells[-1] = cells[-1] + "".join(notes.mark(n) for n in row.label_notes)
+                cells[-1].marks = [notes.mark(n) for n in row.label_notes]
             for c in self.columns:
                 v = row.values.get(c.key, Value.absent("no result in the runs directory"))
-                cells.append(_value_text(v, c, ranks.get((i, c.key)), notes))
+                cells.append(_value_cell(v, c, ranks.get((i, c.key)), notes))
                 if c.compare:
                     p = row.paper.get(c.key, Value.absent("not in the paper"))
-                    cells.append(_value_text(p, Column(c.key, "", c.fmt), None, notes))
+                    cells.append(_value_cell(p, Column(c.key, "", c.fmt), None, notes))
                     if c.key in row.no_compare:
-                        cells.append("n/c" + notes.mark(row.no_compare[c.key]))
+                        cells.append(Cell("n/c", marks=[notes.mark(row.no_compare[c.key])]))
                     elif v.ok and p.ok:
-                        cells.append(c.delta_text(v.mean, p.mean))
+                        cells.append(Cell(c.delta_text(v.mean, p.mean),
+                                          sort=v.mean / p.mean if c.compare == "ratio" and p.mean else v.mean - p.mean))
                     else:
-                        cells.append("")
-            cells += [row.info.get(k, "") for k in self.info_columns]
-            lines.append("| " + " | ".join(_esc(x) for x in cells) + " |")
+                        cells.append(Cell(""))
+            cells += [Cell(row.info.get(k, "")) for k in self.info_columns]
+            rows.append(cells)
+        return Grid(header, numeric, rows, notes.texts)
+
+    # -- markdown ---------------------------------------------------------------------------
+    def markdown(self) -> str:
+        g = self.grid()
+        n_keys = len(self.key_columns)
+        align = [":--" if i < n_keys or not g.numeric[i] else "--:" for i in range(len(g.header))]
+        lines = ["| " + " | ".join(_esc(h) for h in g.header) + " |", "|" + "|".join(align) + "|"]
+        for cells in g.rows:
+            lines.append("| " + " | ".join(_esc(c.markdown()) for c in cells) + " |")
         out = []
         if self.title:
             out.append(f"**{self.title}**" if not self.title.startswith("#") else self.title)
             out.append("")
         out += lines
-        foot = notes.lines()
+        foot = [f"{superscript(i + 1)} {_esc(t)}  " for i, t in enumerate(g.notes)]
         if foot or self.notes:
             out.append("")
-        out += [f"{n}" for n in foot]
+        out += foot
         out += [f"- {n}" for n in self.notes]
         return "\n".join(out)
 
@@ -208,17 +220,44 @@ class Table:
         return recs
 
 
-def _value_text(v: Value, c: Column, rank: int | None, notes: "Footnotes") -> str:
+@dataclass
+class Cell:
+    """One table cell: display text, rank (1 best, 2 second: bold / italics), footnote marks and the
+    number it sorts by (None: sort by text)."""
+
+    text: str
+    rank: int | None = None
+    marks: list[str] = field(default_factory=list)
+    sort: float | None = None
+
+    def markdown(self) -> str:
+        text = self.text
+        if self.rank == 1:
+            text = f"**{text}**"
+        elif self.rank == 2:
+            text = f"*{text}*"
+        return text + "".join(self.marks)
+
+
+@dataclass
+class Grid:
+    header: list[str]
+    numeric: list[bool]        # per column: numbers (right-aligned)
+    rows: list[list[Cell]]
+    notes: list[str]           # footnote texts, numbered from 1
+
+
+def superscript(n: int) -> str:
+    return str(n).translate(SUPERSCRIPT)
+
+
+def _value_cell(v: Value, c: Column, rank: int | None, notes: "Footnotes") -> Cell:
     if not v.ok:
-        return DASH + notes.mark(v.reason or "no value")
+        return Cell(DASH, marks=[notes.mark(v.reason or "no value")])
     text = c.fmt(v.mean)
     if c.show_std and v.std is not None:
         text += f" ± {c.fmt(v.std)}"
-    if rank == 1:
-        text = f"**{text}**"
-    elif rank == 2:
-        text = f"*{text}*"
-    return text + "".join(notes.mark(n) for n in v.notes)
+    return Cell(text, rank, [notes.mark(n) for n in v.notes], v.mean)
 
 
 def _esc(text: str) -> str:
@@ -234,10 +273,7 @@ class Footnotes:
     def mark(self, text: str) -> str:
         if text not in self.texts:
             self.texts.append(text)
-        return str(self.texts.index(text) + 1).translate(SUPERSCRIPT)
-
-    def lines(self) -> list[str]:
-        return [f"{str(i + 1).translate(SUPERSCRIPT)} {_esc(t)}  " for i, t in enumerate(self.texts)]
+        return superscript(self.texts.index(text) + 1)
 
 
 @dataclass

@@ -8,11 +8,20 @@ Contents (chosen so each report rule has a case):
   (out of memory); bicycle 3dgs 5pct without LPIPS (weights absent); Table 4 consistency on bicycle.
 - tandt: train skipped (dataset missing).
 - colmap/fern: the cpu preset, 3dgs and softmax_gs at 5pct; the 3dgs run on the reference renderer.
+- with ``images=True`` (report.html): the Mip-NeRF360 runs' saved renders, ground truth and |error| maps of
+  three views (garden softmax_gs 5pct saved no ground truth: an older run), per-view PSNR, and on bicycle the
+  consistency scores per frame pair with a popping strip.
+
+``make_hostile_tree``: runs whose method, preset, scene and error hold HTML and script (escaping).
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
+
+import numpy as np
+from PIL import Image
 
 from protocols.results import CurvePoint, RunResult, write_result
 
@@ -50,11 +59,43 @@ def _ok(method, dataset, scene, budget, seed, psnr, *, gs, seconds=600.0, fps=20
     return r
 
 
-def make_tree(root: Path) -> Path:
+VIEWS = ("_DSC8679", "_DSC8687", "_DSC8695")
+
+
+def _png(path: Path, seed: int, size: tuple[int, int] = (48, 32)) -> None:
+    rng = np.random.default_rng(seed)
+    img = (rng.random((size[1], size[0], 3)) * 255).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    path.write_bytes(buf.getvalue())
+
+
+def add_images(run_dir: Path, r: RunResult, gt: bool = True) -> RunResult:
+    """The images a run saves (protocols.view_images), on the result before it is written."""
+    for k, v in enumerate(VIEWS):
+        _png(run_dir / "renders" / f"{v}.png", k + 10 * len(r.method))
+        if gt:
+            _png(run_dir / "renders" / "gt" / f"{v}.png", k)
+            _png(run_dir / "renders" / "error" / f"{v}.png", k + 100)
+    r.per_view = {"name": [f"{v}.JPG" for v in VIEWS], "psnr": [r.metrics.get("psnr", 20.0) + 0.5 * k for k in range(3)]}
+    if r.consistency:
+        r.consistency["scores"] = {"7": {"per_pair": [{"i": i, "j": i + 7, "mse": 0.01 + 0.02 * (i == 5), "flip": 0.03,
+                                                       "valid_fraction": 0.8} for i in range(20)]}}
+        _png(run_dir / "consistency" / "strip.png", 7, (8 * 24, 16))
+        (run_dir / "consistency" / "strip.json").write_text(
+            '{"frames": [5, 6, 7, 8, 9, 10, 11, 12], "pair": [5, 12], "mse": 0.03, "step": 7, "why": "worst pair"}')
+    return r
+
+
+def make_tree(root: Path, images: bool = False) -> Path:
     root = Path(root)
 
     def put(r: RunResult) -> None:
-        write_result(root / r.dataset / r.scene / r.method / r.budget / f"seed{r.seed}", r)
+        d = root / r.dataset / r.scene / r.method / r.budget / f"seed{r.seed}"
+        if images and r.status == "ok" and r.dataset == "mipnerf360":
+            add_images(d, r, gt=(r.scene, r.method, r.budget) != ("garden", "softmax_gs", "5pct"))
+        write_result(d, r)
 
     # Table 1: circle4, two methods, two caps, two seeds
     base = {"3dgs": {4: 18.0, 16: 22.0}, "softmax_gs": {4: 28.5, 16: 32.0}}
@@ -106,3 +147,111 @@ def make_tree(root: Path) -> Path:
             r.versions["backend"] = "reference"
         put(r)
     return root
+
+
+HOSTILE_METHOD = "<img src=x onerror=window.__pwned=1>"
+HOSTILE_PRESET = "</script><script>window.__pwned=2</script>"
+HOSTILE_SCENE = "a\"'><b>bold&amp;"
+HOSTILE_ERROR = "</td></tr></table><script>window.__pwned=3</script> & <!-- unclosed"
+
+
+def make_hostile_tree(root: Path) -> Path:
+    """Strings from configs, paths and errors that are HTML: report.html must show them as text."""
+    root = Path(root)
+    for m, preset in ((HOSTILE_METHOD, "paper"), ("3dgs", HOSTILE_PRESET)):
+        r = _ok(m, "mipnerf360", HOSTILE_SCENE, "full", 0, 24.0, gs=1000, preset=preset)
+        d = root / "mipnerf360" / HOSTILE_SCENE / m / "full" / "seed0"
+        add_images(d, r)
+        write_result(d, r)
+    write_result(root / "mipnerf360" / HOSTILE_SCENE / "softmax_gs" / "full" / "seed0",
+                 RunResult(method="softmax_gs", dataset="mipnerf360", scene=HOSTILE_SCENE, budget="full", seed=0,
+                           status="failed", error=HOSTILE_ERROR, versions=dict(VERSIONS)))
+    return root
+
+
+# ---- a large tree (bench/report_html.py): the page of a report of hundreds of runs -------------------
+
+def _scene_image(seed: int, w: int, h: int) -> np.ndarray:
+    """A smooth synthetic photo: gradients, discs and bars (so renders and error maps look like images)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w] / max(w, h)
+    img = np.stack([0.3 + 0.4 * x, 0.35 + 0.3 * y, 0.5 - 0.3 * x * y], axis=-1)
+    for _ in range(8):
+        cx, cy, r = rng.random(), rng.random() * h / w, 0.05 + 0.15 * rng.random()
+        img[(x - cx) ** 2 + (y - cy) ** 2 < r * r] = rng.random(3)
+    for _ in range(4):
+        x0, x1 = sorted(rng.random(2))
+        img[:, int(x0 * w):int(x0 * w) + 3] = rng.random(3)
+    return img.astype(np.float32)
+
+
+def _degrade(img: np.ndarray, blur: int, noise: float, seed: int) -> np.ndarray:
+    out = img.copy()
+    for _ in range(blur):  # box blur passes: a worse method is blurrier
+        out = (out + np.roll(out, 1, 0) + np.roll(out, -1, 0) + np.roll(out, 1, 1) + np.roll(out, -1, 1)) / 5
+    out += np.random.default_rng(seed).normal(0, noise, out.shape)
+    return np.clip(out, 0, 1).astype(np.float32)
+
+
+def make_large_tree(root: Path, size: tuple[int, int] = (240, 160)) -> Path:
+    """200 runs: 11 real scenes (Mip-NeRF360, T&T, Deep Blending) × 4 methods × {5pct, full} × seeds {0, 1}
+    (176) and 3 patterns × 4 methods × caps {4, 16} (24); each real run saves 3 test views with ground truth
+    and |error| maps (the evaluation's own code), the bicycle runs consistency scores and a strip."""
+    import torch
+
+    from protocols.view_images import save_view_images
+
+    root = Path(root)
+    methods = {"3dgs": (3, 0.03, 0.0), "gef_only": (2, 0.025, 0.4), "softmax_only": (2, 0.02, 0.3),
+               "softmax_gs": (1, 0.015, 0.9)}
+    scenes = [("mipnerf360", s) for s in ("bicycle", "bonsai", "counter", "garden", "kitchen", "room", "stump")]
+    scenes += [("tandt", "train"), ("tandt", "truck"), ("deepblending", "drjohnson"), ("deepblending", "playroom")]
+    w, h = size
+    n = 0
+    for k, (ds, scene) in enumerate(scenes):
+        gts = [_scene_image(100 * k + v, w, h) for v in range(3)]
+        names = [f"{scene}_{v:03d}.JPG" for v in range(3)]
+        for m, (blur, noise, gain) in methods.items():
+            for b in ("5pct", "full"):
+                for seed in (0, 1):
+                    extra = 1.5 if b == "full" else 0.0
+                    r = _ok(m, ds, scene, b, seed, 24.0 + gain + extra + 0.1 * seed - 0.3 * k,
+                            gs=3_000_000 if b == "full" else 150_000, seconds=2400.0 if b == "full" else 1300.0,
+                            fps=60.0 + 20 * blur if b == "full" else 150.0 + 20 * blur)
+                    d = root / ds / scene / m / b / f"seed{seed}"
+                    renders = [_degrade(g, blur + (b == "5pct"), noise, seed + 7 * v) for v, g in enumerate(gts)]
+                    for name, img in zip(names, renders):
+                        _png_array(d / "renders" / f"{Path(name).stem}.png", img)
+                    save_view_images(d / "renders", names, [torch.from_numpy(x) for x in renders],
+                                     [torch.from_numpy(g) for g in gts], 3)
+                    r.per_view = {"name": names, "psnr": [r.metrics["psnr"] + 0.3 * v for v in range(3)]}
+                    if scene == "bicycle" and seed == 0:
+                        pop = np.random.default_rng(blur).random(40)
+                        r.consistency = {"scene": scene, "method": m, "psnr": r.metrics["psnr"], "step": 7,
+                                         "mse": 0.01 * blur, "flip": 0.02 * blur, "flip_name": "flip",
+                                         "estimator": "geometric", "mask": "per-method",
+                                         "scores": {"7": {"per_pair": [{"i": i, "j": i + 7, "mse": 0.004 * blur * (1 + 3 * p ** 8)}
+                                                                       for i, p in enumerate(pop)]}}}
+                        strip = np.concatenate([_degrade(gts[0], blur, noise, i)[:, :96] for i in range(8)], axis=1)
+                        _png_array(d / "consistency" / "strip.png", strip)
+                        (d / "consistency" / "strip.json").write_text(
+                            '{"frames": [3, 4, 5, 6, 7, 8, 9, 10], "pair": [3, 10], "mse": 0.05, "step": 7, '
+                            '"why": "the i \\u2192 i+7 pair with the highest warped MSE"}')
+                    write_result(d, r)
+                    n += 1
+    for pattern in ("circle4", "rect4", "oval4"):
+        for m, (blur, noise, gain) in methods.items():
+            for cap in (4, 16):
+                r = _ok(m, "patterns", pattern, f"cap{cap}", 0, 18.0 + 4 * gain + 2 * (cap == 16), gs=cap,
+                        seconds=10.0 * cap, fps=200.0 / cap, config={"budget": {"name": f"cap{cap}", "cap": cap}})
+                write_result(root / "patterns" / pattern / m / f"cap{cap}" / "seed0", r)
+                n += 1
+    assert n == 200, n
+    return root
+
+
+def _png_array(path: Path, img: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
+    path.write_bytes(buf.getvalue())

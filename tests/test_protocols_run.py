@@ -130,6 +130,13 @@ def test_consistency_row_and_trajectory_recorded(tmp_path):
     assert r.diagnostics["metrics_on_8bit"] is True
     assert r.lpips_net.endswith("3dgs-input")
     assert set(r.diagnostics["params"]) == {"alpha", "beta", "gamma"}
+    # the viewer's images (report.html): ground truth and |error| map of a few test views, the popping strip
+    gts = sorted(p.name for p in (run / "renders" / "gt").glob("*.png"))
+    n_test = len(list((run / "renders").glob("*.png")))
+    assert n_test >= 2 and len(gts) == min(3, n_test) and gts == sorted(p.name for p in (run / "renders" / "error").glob("*.png"))
+    assert all((run / "renders" / g).is_file() for g in gts)
+    strip = json.loads((run / "consistency" / "strip.json").read_text())
+    assert len(strip["frames"]) == 8 and (run / "consistency" / "strip.png").is_file()
 
 
 def test_smoke_experiment_end_to_end_with_report(tmp_path):

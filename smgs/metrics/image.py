@@ -34,6 +34,22 @@ def quantize_8bit(img: torch.Tensor) -> torch.Tensor:
     return to_uint8(img).float().div(255.0).to(img.device)
 
 
+ERROR_MAP_VMAX = 0.25
+"""|error| (mean over RGB, images in [0, 1]) at which an error map saturates: one fixed scale, so maps of
+different methods at the same view compare by colour."""
+
+
+def abs_error_map(pred: torch.Tensor, gt: torch.Tensor, vmax: float = ERROR_MAP_VMAX) -> np.ndarray:
+    """|pred − gt| of two [H, W, 3] images in [0, 1] (8-bit quantised first, as the metrics see them),
+    mean over RGB, as a uint8 [H, W, 3] heat map: black (0) → red → yellow → white (≥ vmax)."""
+    if pred.shape != gt.shape:
+        raise ValueError(f"error map of images of different shapes: {tuple(pred.shape)} vs {tuple(gt.shape)}")
+    err = (quantize_8bit(pred.float()) - quantize_8bit(gt.float())).abs().mean(-1).cpu().numpy()
+    t = np.clip(err / vmax, 0.0, 1.0) * 3.0  # three ramps: red, then green, then blue
+    rgb = np.stack([np.clip(t, 0, 1), np.clip(t - 1, 0, 1), np.clip(t - 2, 0, 1)], axis=-1)
+    return (rgb * 255 + 0.5).astype(np.uint8)
+
+
 def png_roundtrip(img: torch.Tensor) -> torch.Tensor:
     """Encode as PNG with PIL and decode again (slow; tests check quantize_8bit against it)."""
     from PIL import Image
