@@ -15,7 +15,11 @@ from baselines.method import SceneNeeds
 from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.raster import RenderOutput
+from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_trainer,
+                               train_overrides)
+from smgs.io.ply import PlySplats, read_ply, write_ply
 from smgs.train.config import TrainConfig, from_dict, to_dict
+from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer
 
 CHECKPOINT = "checkpoint.pt"
@@ -35,11 +39,30 @@ class GaussianSplatting:
     needs: ClassVar[SceneNeeds] = SceneNeeds(optional=frozenset({"sfm_points", "view_dependence", "background"}))
 
     def __init__(self, scene: Scene, config: dict[str, Any] | TrainConfig | None = None, *,
-                 name: str | None = None) -> None:
+                 name: str | None = None, gaussians: Gaussians | None = None) -> None:
         cfg = config if isinstance(config, TrainConfig) else from_dict(TrainConfig, config or {})
         self.name = name or cfg.mode
         self.notes = self.needs.check(scene, self.name)
-        self.trainer = Trainer(scene, cfg)
+        self.trainer = Trainer(scene, cfg, gaussians)
+
+    @classmethod
+    def from_ply(cls, scene: Scene, path: str | Path, config: dict[str, Any] | None = None) -> "GaussianSplatting":
+        """The model of a 3DGS PLY (``smgs.io.ply``), ready to render: the method its extras call
+        for (``3dgs`` without any), ``config`` (a TrainConfig dict) under the file's own settings."""
+        return cls.from_splats(scene, read_ply(path), config, where=path)
+
+    @classmethod
+    def from_splats(cls, scene: Scene, splats: PlySplats, config: dict[str, Any] | None = None,
+                    where: str | Path = "<splats>") -> "GaussianSplatting":
+        from baselines.registry import merge_config
+
+        cfg = from_dict(TrainConfig, merge_config(config or {}, train_overrides(splats, where)))
+        g = gaussians_from_splats(splats, cfg.gaussians, splats_extent(splats, scene.extent, where))
+        return cls(scene, cfg, name=cfg.mode, gaussians=g)
+
+    def export_ply(self, path: str | Path) -> Path:
+        """Write the model as a 3DGS PLY (atomically; ``smgs.io.ply`` documents the layout)."""
+        return write_ply(path, splats_from_trainer(self.trainer))
 
     @property
     def config(self) -> TrainConfig:
