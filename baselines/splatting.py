@@ -15,8 +15,8 @@ from baselines.method import SceneNeeds
 from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.raster import RenderOutput
-from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_trainer,
-                               train_overrides)
+from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
+                               splats_from_trainer, train_overrides)
 from smgs.io.ply import PlySplats, read_ply, write_ply
 from smgs.train.config import TrainConfig, from_dict, to_dict
 from smgs.train.gaussians import Gaussians
@@ -112,3 +112,18 @@ class GaussianSplatting:
         if state.get("method") != self.name:
             raise ValueError(f"checkpoint {path} is of method {state.get('method')!r}, not {self.name!r}")
         self.trainer.load_state_dict(state["trainer"])
+
+
+def export_checkpoint_ply(path: str | Path, out: str | Path) -> tuple[Path, int]:
+    """Write the model of a checkpoint directory (written by ``GaussianSplatting.save``) as a 3DGS
+    PLY without its scene; returns the file and the checkpoint's step."""
+    path = Path(path)
+    file = path / CHECKPOINT
+    if not file.is_file():
+        raise FileNotFoundError(f"{file}: no checkpoint there (GaussianSplatting.save writes {CHECKPOINT})")
+    state = torch.load(file, map_location="cpu", weights_only=True)
+    trainer = state.get("trainer") if isinstance(state, dict) else None
+    if not isinstance(trainer, dict) or trainer.get("format") != "smgs.train/1":
+        raise ValueError(f"{file}: not a checkpoint of the built-in splatting methods (method "
+                         f"{state.get('method') if isinstance(state, dict) else None!r}); only those export a PLY")
+    return write_ply(out, splats_from_state(trainer)), int(trainer["step"])

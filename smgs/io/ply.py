@@ -208,6 +208,8 @@ def read_ply(path: Path | str) -> PlySplats:
     _check_finite(path, col, base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS if e in present])
 
     def stack(keys: list[str]) -> np.ndarray:
+        if not keys:
+            return np.zeros((n, 0), np.float32)
         return np.stack([col[q].astype(np.float32) for q in keys], axis=1)
 
     rest = stack([f"f_rest_{i}" for i in range(m)]).reshape(n, 3, k - 1).transpose(0, 2, 1)
