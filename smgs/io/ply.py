@@ -126,6 +126,7 @@ def write_ply(path: Path | str, splats: PlySplats) -> Path:
     renamed over ``path``; on any error it is removed and ``path`` is left as it was."""
     path = Path(path)
     splats.check(path)
+    _check_finite(path, _columns(splats), list(_columns(splats)), "finite values (nothing was written)")
     n, k = len(splats), splats.sh.shape[1]
     extras = [e for e in EXTRAS if e in splats.extras]
     cols = [splats.means, np.zeros((n, 3), np.float32), splats.sh[:, 0, :],
@@ -257,7 +258,12 @@ def _degree(path: Path, m: int) -> int:
                          "0, 9, 24 or 45 (3·((degree+1)² − 1) for SH degree 0..3)")
 
 
-def _check_finite(path: Path, col: dict[str, np.ndarray], keys: list[str]) -> None:
+def _columns(s: PlySplats) -> dict[str, np.ndarray]:
+    return {"means": s.means, "sh": s.sh, "opacities": s.opacities, "scales": s.scales, "quats": s.quats,
+            **s.extras}
+
+
+def _check_finite(path: Path, col: dict[str, np.ndarray], keys: list[str], what: str = "finite values only") -> None:
     bad = {}
     for q in keys:
         v = col[q]
@@ -269,7 +275,7 @@ def _check_finite(path: Path, col: dict[str, np.ndarray], keys: list[str]) -> No
         where = ", ".join(f"{q}: {a} NaN, {b} inf" for q, (a, b) in list(bad.items())[:8])
         more = f", … {len(bad) - 8} more properties" if len(bad) > 8 else ""
         raise PlyFormatError(path, f"{nan} NaN and {inf} inf value(s) in {len(bad)} properties ({where}{more})",
-                             "finite values only")
+                             what)
 
 
 def _short(names: list[str], limit: int = 20) -> str:
