@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import plyfile
+from numpy.lib.recfunctions import structured_to_unstructured
 
 EXTRAS: tuple[str, ...] = ("gef_alpha", "softmax_beta", "softmax_gamma")
 """The Softmax-GS extra properties (raw, pre-activation values)."""
@@ -126,7 +127,9 @@ def write_ply(path: Path | str, splats: PlySplats) -> Path:
     renamed over ``path``; on any error it is removed and ``path`` is left as it was."""
     path = Path(path)
     splats.check(path)
-    _check_finite(path, _columns(splats), list(_columns(splats)), "finite values (nothing was written)")
+    _check_finite(path, {name: (int(np.isnan(a).sum()), int(np.isinf(a).sum()))
+                         for name, a in _columns(splats).items() if not np.isfinite(a).all()},
+                  "finite values (nothing was written)")
     n, k = len(splats), splats.sh.shape[1]
     extras = [e for e in EXTRAS if e in splats.extras]
     cols = [splats.means, np.zeros((n, 3), np.float32), splats.sh[:, 0, :],
@@ -167,7 +170,7 @@ def read_ply(path: Path | str) -> PlySplats:
     if path.stat().st_size == 0:
         raise PlyFormatError(path, "empty file (0 bytes)", "a PLY header starting with 'ply'")
     try:
-        ply = plyfile.PlyData.read(str(path))
+        ply = plyfile.PlyData.read(str(path))   # memory-mapped: its non-mmap path reads row by row
     except plyfile.PlyHeaderParseError as e:
         raise PlyFormatError(path, f"not a readable PLY header ({e})",
                              "'ply', 'format binary_little_endian 1.0', 'element vertex N', properties, "
@@ -205,17 +208,19 @@ def read_ply(path: Path | str) -> PlySplats:
                              "f_rest_0 .. f_rest_{M-1} without gaps")
     degree = _degree(path, m)
     k = (degree + 1) ** 2
-    col = {q: np.asarray(vertex[q]) for q in names}
-    _check_finite(path, col, base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS if e in present])
+    # one float32 table [N, P] in one pass (any scalar type, either byte order); columns are
+    # gathered by index, row by row (a strided pass per column would cost one pass per property)
+    table = structured_to_unstructured(np.asarray(vertex.data), dtype=np.float32)
+    where = {q: i for i, q in enumerate(names)}
+    checked = base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS if e in present]
+    _check_finite(path, _nonfinite(table[:, [where[q] for q in checked]], checked))
 
     def stack(keys: list[str]) -> np.ndarray:
-        if not keys:
-            return np.zeros((n, 0), np.float32)
-        return np.stack([col[q].astype(np.float32) for q in keys], axis=1)
+        return np.ascontiguousarray(table[:, [where[q] for q in keys]])
 
     rest = stack([f"f_rest_{i}" for i in range(m)]).reshape(n, 3, k - 1).transpose(0, 2, 1)
     sh = np.concatenate([stack(["f_dc_0", "f_dc_1", "f_dc_2"])[:, None, :], rest], axis=1)
-    extras = {e: col[e].astype(np.float32) for e in EXTRAS if e in present}
+    extras = {e: stack([e])[:, 0] for e in EXTRAS if e in present}
     known = set(base) | {"nx", "ny", "nz"} | {f"f_rest_{i}" for i in range(m)} | set(extras)
     ignored = [q for q in names if q not in known]
     if ignored:
@@ -223,7 +228,7 @@ def read_ply(path: Path | str) -> PlySplats:
     for e, kind in ((e, meta.get(f"activation.{e}")) for e in extras):
         if kind is not None and kind not in ACTIVATIONS:
             raise PlyFormatError(path, f"comment 'smgs activation.{e} {kind}'", f"one of {list(ACTIVATIONS)}")
-    out = PlySplats(stack(["x", "y", "z"]), np.ascontiguousarray(sh), col["opacity"].astype(np.float32),
+    out = PlySplats(stack(["x", "y", "z"]), np.ascontiguousarray(sh), stack(["opacity"])[:, 0],
                     stack(["scale_0", "scale_1", "scale_2"]), stack(["rot_0", "rot_1", "rot_2", "rot_3"]),
                     extras, meta)
     out.check(path)
@@ -263,13 +268,15 @@ def _columns(s: PlySplats) -> dict[str, np.ndarray]:
             **s.extras}
 
 
-def _check_finite(path: Path, col: dict[str, np.ndarray], keys: list[str], what: str = "finite values only") -> None:
-    bad = {}
-    for q in keys:
-        v = col[q]
-        nan, inf = int(np.isnan(v).sum()), int(np.isinf(v).sum())
-        if nan or inf:
-            bad[q] = (nan, inf)
+def _nonfinite(table: np.ndarray, names: list[str]) -> dict[str, tuple[int, int]]:
+    """name -> (NaN count, inf count) of the columns of ``table`` [N, P] that have any."""
+    if np.isfinite(table).all():
+        return {}
+    nan, inf = np.isnan(table).sum(axis=0), np.isinf(table).sum(axis=0)
+    return {q: (int(a), int(b)) for q, a, b in zip(names, nan, inf) if a or b}
+
+
+def _check_finite(path: Path, bad: dict[str, tuple[int, int]], what: str = "finite values only") -> None:
     if bad:
         nan, inf = sum(b[0] for b in bad.values()), sum(b[1] for b in bad.values())
         where = ", ".join(f"{q}: {a} NaN, {b} inf" for q, (a, b) in list(bad.items())[:8])
