@@ -3,9 +3,10 @@
 
     python -m bench.ply [--n 1000000] [--degree 3] [--repeats 3] [--json FILE]
 
-Times (wall clock, and this process's CPU time, which a busy shared host inflates less), per repeat: ``write_ply`` (checks, column packing, plyfile write, fsync, rename), and
-``read_ply`` (plyfile parse, checks incl. NaN/inf counts, SH unpacking); best and median of the
-repeats, with the file size and the write/read throughput. The file goes to a temporary folder
+Times (wall clock, and this process's CPU time, which a busy shared host inflates less), per
+repeat: ``write_ply`` (checks, column packing, plyfile write, fsync, rename), and ``read_ply``
+(plyfile parse, checks incl. NaN/inf counts, SH unpacking); best and median of the repeats, with
+the file size and the write/read throughput. The file goes to a temporary folder
 (``--dir`` to choose one: the disk's speed is part of the figure).
 """
 

@@ -10,7 +10,6 @@ import hashlib
 import json
 import logging
 from pathlib import Path
-from typing import Any
 
 from protocols.results import RunResult
 
@@ -90,6 +89,3 @@ def export_run(run_dir: Path | str, out: Path | str | None = None) -> tuple[Path
     path, step = export_checkpoint_ply(ckpt, Path(out) if out is not None else run_dir / PLY_FILE)
     return path, step, status
 
-
-def source_note(source: dict[str, Any]) -> str:
-    return f"pretrained model from {source.get('ply')} (sha256 {str(source.get('sha256'))[:12]}…), not trained here"
