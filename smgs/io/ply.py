@@ -198,7 +198,8 @@ def read_ply(path: Path | str) -> PlySplats:
             "rot_0", "rot_1", "rot_2", "rot_3"]
     missing = [q for q in base if q not in present]
     if missing:
-        raise PlyFormatError(path, f"missing properties {missing} (found {_short(names)})",
+        packed = " (a compressed PLY: save it uncompressed from SuperSplat first)" if "packed_position" in present else ""
+        raise PlyFormatError(path, f"missing properties {missing} (found {_short(names)}){packed}",
                              "the 3DGS layout x y z [nx ny nz] f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3")
     rest_idx = sorted(_rest_index(path, q) for q in names if q.startswith("f_rest"))
     m = len(rest_idx)
