@@ -14,8 +14,13 @@ import smgs
 from baselines.method import SceneNeeds
 from smgs.camera import Camera
 from smgs.data.scene import Scene
+from smgs.device import resolve_device
 from smgs.raster import RenderOutput
+from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
+                               splats_from_trainer, train_overrides)
+from smgs.io.ply import PlySplats, read_ply, write_ply
 from smgs.train.config import TrainConfig, from_dict, to_dict
+from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer
 
 CHECKPOINT = "checkpoint.pt"
@@ -35,15 +40,38 @@ class GaussianSplatting:
     needs: ClassVar[SceneNeeds] = SceneNeeds(optional=frozenset({"sfm_points", "view_dependence", "background"}))
 
     def __init__(self, scene: Scene, config: dict[str, Any] | TrainConfig | None = None, *,
-                 name: str | None = None, device: torch.device | str) -> None:
+                 name: str | None = None, device: torch.device | str,
+                 gaussians: Gaussians | None = None) -> None:
         cfg = config if isinstance(config, TrainConfig) else from_dict(TrainConfig, config or {})
         self.name = name or cfg.mode
         self.notes = self.needs.check(scene, self.name)
-        self.trainer = Trainer(scene, cfg, device=device)
+        self.trainer = Trainer(scene, cfg, gaussians, device=device)
 
     @property
     def device(self) -> torch.device:
         return self.trainer.device
+
+
+    @classmethod
+    def from_ply(cls, scene: Scene, path: str | Path, config: dict[str, Any] | None = None, *,
+                 device: torch.device | str) -> "GaussianSplatting":
+        """The model of a 3DGS PLY (``smgs.io.ply``), ready to render: the method its extras call
+        for (``3dgs`` without any), ``config`` (a TrainConfig dict) under the file's own settings."""
+        return cls.from_splats(scene, read_ply(path), config, where=path, device=device)
+
+    @classmethod
+    def from_splats(cls, scene: Scene, splats: PlySplats, config: dict[str, Any] | None = None,
+                    where: str | Path = "<splats>", *, device: torch.device | str) -> "GaussianSplatting":
+        from baselines.registry import merge_config
+
+        cfg = from_dict(TrainConfig, merge_config(config or {}, train_overrides(splats, where)))
+        g = gaussians_from_splats(splats, cfg.gaussians, splats_extent(splats, scene.extent, where),
+                                  device=resolve_device(device))
+        return cls(scene, cfg, name=cfg.mode, device=device, gaussians=g)
+
+    def export_ply(self, path: str | Path) -> Path:
+        """Write the model as a 3DGS PLY (atomically; ``smgs.io.ply`` documents the layout)."""
+        return write_ply(path, splats_from_trainer(self.trainer))
 
     @property
     def config(self) -> TrainConfig:
@@ -94,3 +122,18 @@ class GaussianSplatting:
         if state.get("method") != self.name:
             raise ValueError(f"checkpoint {path} is of method {state.get('method')!r}, not {self.name!r}")
         self.trainer.load_state_dict(state["trainer"])
+
+
+def export_checkpoint_ply(path: str | Path, out: str | Path) -> tuple[Path, int]:
+    """Write the model of a checkpoint directory (written by ``GaussianSplatting.save``) as a 3DGS
+    PLY without its scene; returns the file and the checkpoint's step."""
+    path = Path(path)
+    file = path / CHECKPOINT
+    if not file.is_file():
+        raise FileNotFoundError(f"{file}: no checkpoint there (GaussianSplatting.save writes {CHECKPOINT})")
+    state = torch.load(file, map_location="cpu", weights_only=True)
+    trainer = state.get("trainer") if isinstance(state, dict) else None
+    if not isinstance(trainer, dict) or trainer.get("format") != "smgs.train/1":
+        raise ValueError(f"{file}: not a checkpoint of the built-in splatting methods (method "
+                         f"{state.get('method') if isinstance(state, dict) else None!r}); only those export a PLY")
+    return write_ply(out, splats_from_state(trainer)), int(trainer["step"])

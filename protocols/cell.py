@@ -22,7 +22,7 @@ CHECKPOINT = "checkpoint.pt"
 LOG = "log.txt"
 # Keys of a cell's config that do not change its result (where and how it runs).
 VOLATILE = ("force", "executor", "report", "out_dir", "data_root", "on_missing", "grid",
-            "experiment_name", "checkpoint_every")
+            "experiment_name", "checkpoint_every", "export_ply")
 
 
 def result_hash(cfg: dict) -> str:

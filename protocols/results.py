@@ -39,6 +39,9 @@ class RunResult:
     per_view: per-test-view lists, same keys as metrics plus "name".
     preset: "paper" for the paper's protocol, or the name of a reduced preset (e.g. "cpu") that a
         report must label as such.
+    source: where the model came from when this run did not train it (``kind: "pretrained"``,
+        ``ply``, ``sha256``, ``trained_here: false``; ``protocols.evaluate_ply``); empty when the
+        run trained it.
     """
 
     method: str
@@ -68,6 +71,7 @@ class RunResult:
     consistency: dict[str, Any] = field(default_factory=dict)
     versions: dict[str, str] = field(default_factory=dict)
     data: dict[str, Any] = field(default_factory=dict)
+    source: dict[str, Any] = field(default_factory=dict)
     schema: int = SCHEMA_VERSION
 
     def to_dict(self) -> dict:

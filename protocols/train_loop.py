@@ -16,8 +16,8 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from baselines.registry import create_method
 from protocols.datasets import load_scene_for
+from protocols.ply import after_run, make_method
 from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
@@ -140,7 +140,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
     name = cfg["method"]["name"]
-    method = create_method(name, scene, method_config(cfg), device=device)
+    method = make_method(cfg, scene, result, device)   # trained here, or read from a PLY (protocols.ply)
     log.info("device: %s", device_name(device))
     test_rgb = [v.rgb.to(device) for v in scene.test]
     desc = method.describe()
@@ -254,6 +254,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
                                        "curve": [c.__dict__ for c in curve]})
+    after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
 
 

@@ -93,6 +93,12 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
     backends = sorted({r.versions.get("backend") for r in runs if r.versions.get("backend")})
     if len(backends) > 1:
         notes.append(f"{what} mixes renderer backends ({', '.join(backends)}).")
+    pre = sorted({f"{r.scene}/{r.method} ← {r.source.get('ply')}" for r in runs
+                  if (r.source or {}).get("kind") == "pretrained"})
+    if pre:
+        notes.append("Rows marked (pretrained) are models trained elsewhere, read from a PLY and only evaluated "
+                     "here under the same protocol (no train time of ours): " + "; ".join(pre[:5])
+                     + (f"; … {len(pre) - 5} more" if len(pre) > 5 else "") + ".")
     q = {bool(r.diagnostics.get("metrics_on_8bit")) for r in runs
          if r.status == "ok" and "metrics_on_8bit" in (r.diagnostics or {})}
     if q == {False}:

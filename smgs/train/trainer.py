@@ -53,14 +53,24 @@ def trainable_groups(mode: str, max_sh_degree: int) -> tuple[str, ...]:
     return tuple(n for n in PARAM_NAMES if n not in skip)
 
 
+def active_sh_degree(iteration: int, interval: int, max_degree: int) -> int:
+    """SH degree in use at ``iteration``: +1 every ``interval`` iterations (3DGS ``oneupSHdegree``);
+    ``interval`` <= 0 uses every degree from the start (a model trained elsewhere)."""
+    if interval <= 0:
+        return max_degree
+    return min(iteration // interval, max_degree)
+
+
 class Trainer:
     """Trains Gaussians on a ``Scene`` with a ``TrainConfig`` on ``device`` (``smgs.device``:
     a ``torch.device`` or a setting such as "auto", "cuda:1"). Every tensor of the run lives there:
     the scene's training images and background are copied there once. Deterministic for a given
     seed and device (initialisation, view order, random backgrounds and split samples use private
-    generators on the device, saved in checkpoints)."""
+    generators on the device, saved in checkpoints). ``gaussians`` starts from given Gaussians (e.g.
+    read from a PLY) instead of initialising them from the scene."""
 
-    def __init__(self, scene: Scene, cfg: TrainConfig, *, device: torch.device | str) -> None:
+    def __init__(self, scene: Scene, cfg: TrainConfig, gaussians: Gaussians | None = None, *,
+                 device: torch.device | str) -> None:
         mode_flags(cfg.mode)  # validates the mode
         self.device = resolve_device(device)
         check_backend(cfg.backend, self.device)
@@ -75,7 +85,10 @@ class Trainer:
         if scene.flat and gc.max_sh_degree:
             self.plan.append("SH: degree 0 (flat scene, no view dependence)")
         self.gen = torch.Generator(device=self.device).manual_seed(int(cfg.seed))
-        self.gaussians = self._init_gaussians()
+        if gaussians is not None:
+            self.max_sh_degree = gaussians.max_sh_degree
+            self.plan.append(f"init: {len(gaussians)} given Gaussians, SH degree {gaussians.max_sh_degree}")
+        self.gaussians = self._init_gaussians() if gaussians is None else gaussians
         self.optimizer = GaussianOptimizer(self.gaussians, cfg.optim, self.extent, cfg.steps,
                                            trainable_groups(cfg.mode, self.max_sh_degree))
         for n in PARAM_NAMES:   # unused groups get no gradients at all
@@ -142,9 +155,9 @@ class Trainer:
 
     # -- rendering ---------------------------------------------------------------------------
     def sh_degree(self, iteration: int | None = None) -> int:
-        """Active SH degree: +1 every ``sh_degree_interval`` iterations (3DGS ``oneupSHdegree``)."""
+        """Active SH degree (``active_sh_degree``) at ``iteration`` (default: the steps done)."""
         it = self.step_count if iteration is None else iteration
-        return min(it // max(self.cfg.sh_degree_interval, 1), self.max_sh_degree)
+        return active_sh_degree(it, self.cfg.sh_degree_interval, self.max_sh_degree)
 
     def reg_values(self) -> torch.Tensor:
         g = self.gaussians

@@ -1,0 +1,115 @@
+"""``python -m protocols.evaluate_ply MODEL.ply [key=value ...]``: score a model trained elsewhere (a
+3DGS PLY: the original code's ``point_cloud/iteration_30000/point_cloud.ply``, gsplat's
+``export_splats``, nerfstudio's ``ns-export gaussian-splat``) under this harness's protocol.
+
+The key=value overrides are those of ``protocols.run`` (``dataset=``, ``scene=``, ``protocol=``,
+``data_root=``, ``experiment_name=``, ``eval.*``, ``backend=``). The method follows from the file
+(``3dgs`` without Softmax-GS extras); the budget is ``pretrained``. The test views are rendered
+exactly as for a trained run (same split, resolution rule, 8-bit quantisation, metrics, FPS,
+renders) by the same code, with zero training steps; ``results.json`` lands in
+``<out_dir>/<dataset>/<scene>/<method>/pretrained/seed<seed>/`` and records the file (path,
+sha256, header) under ``source`` with ``trained_here: false``. With ``report=true`` (default) the
+experiment's report is rebuilt, the pretrained row beside the trained ones.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+from protocols.grid import Cell
+
+BUDGET = "pretrained"
+
+
+def evaluation_config(ply: Path, overrides: list[str]) -> dict:
+    """The resolved cell config that evaluates ``ply`` (Hydra composed from configs/)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from protocols.ply import sha256
+    from protocols.run import CONFIG_DIR, _method_overrides
+    from smgs.io.ply import read_ply
+
+    mode = read_ply(ply).mode   # bad input stops here, before anything is composed or written
+    for o in overrides:
+        if o.startswith("method=") and o.split("=", 1)[1] != mode:
+            raise ValueError(f"{ply} holds a {mode} model; it cannot be evaluated as {o.split('=', 1)[1]!r} "
+                             "(leave method= out)")
+        if o.startswith(("budget=", "grid.")):
+            raise ValueError(f"{o}: an evaluated PLY has budget {BUDGET!r} and no grid")
+    fixed = [o for o in overrides if not o.startswith(("method=", "method.name="))]
+    fixed += _method_overrides(mode) + [f"budget={BUDGET}"]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = OmegaConf.to_container(compose(config_name="config", overrides=fixed), resolve=True)
+        if cfg.get("scene") is None:
+            scenes = [str(s) for s in cfg["dataset"].get("scenes") or []]
+            if len(scenes) != 1:
+                raise ValueError(f"dataset {cfg['dataset']['name']!r} has scenes {scenes}: name the one the model "
+                                 "shows with scene=NAME")
+            cfg = OmegaConf.to_container(compose(config_name="config", overrides=fixed + [f"scene={scenes[0]}"]),
+                                         resolve=True)
+    cfg["ply"] = {"path": str(ply.resolve()), "sha256": sha256(ply)}
+    return cfg
+
+
+def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
+    """Evaluate one PLY; returns ``run_cell``'s summary plus the run directory."""
+    from protocols.cell import result_hash, run_cell
+    from protocols.datasets import check_available
+    from protocols.results import RESULTS_FILE, read_result
+    from protocols.train_loop import POINTER
+
+    ply = Path(ply)
+    cfg = evaluation_config(ply, overrides)
+    missing = check_available(cfg)
+    if missing:
+        raise FileNotFoundError(f"missing data: {missing}")
+    cell = Cell(cfg["method"]["name"], cfg["dataset"]["name"], str(cfg["scene"]), BUDGET, int(cfg["seed"]))
+    run_dir = Path(cfg["out_dir"]) / cell.key
+    res = run_dir / RESULTS_FILE
+    try:
+        done = res.is_file() and not cfg.get("force") and read_result(res).config_hash == result_hash(cfg) \
+            and read_result(res).status == "ok"
+    except ValueError:
+        done = False
+    if not done:  # a checkpoint left by another file (or an older evaluation) must not be resumed
+        (run_dir / POINTER).unlink(missing_ok=True)
+        for old in run_dir.glob("ckpt-*"):
+            shutil.rmtree(old, ignore_errors=True)
+    summary = run_cell({"key": cell.key, "run_dir": str(run_dir), "config": cfg})
+    summary["run_dir"] = str(run_dir)
+    if cfg.get("report"):
+        from reports.build import build_report
+
+        summary["report"] = str(build_report(Path(cfg["out_dir"])))
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--force" in argv:
+        argv = [a for a in argv if a != "--force"] + ["force=true"]
+    plys = [a for a in argv if "=" not in a]
+    if len(plys) != 1 or argv[:1] in (["-h"], ["--help"]):
+        print(__doc__, file=sys.stderr)
+        return 2
+    try:
+        s = evaluate_ply(plys[0], [a for a in argv if "=" in a])
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    if s["status"] != "ok":
+        print(f"error: {s['key']}: {s['status']}: {s.get('error')}", file=sys.stderr)
+        return 1
+    what = "already evaluated (same file and config; --force redoes it)" if s.get("skipped") else \
+        f"PSNR {s['psnr']:.2f}"
+    print(f"{s['run_dir']}/results.json: {what}")
+    if s.get("report"):
+        print(f"report: {s['report']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Reading and writing models in interchange formats (the 3DGS PLY)."""
