@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import pickle
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -85,7 +86,55 @@ class GaussianSplatting:
         _atomic_write(path / MANIFEST, json.dumps(manifest, indent=1).encode())
 
     def load(self, path: str | Path) -> None:
-        state = torch.load(Path(path) / CHECKPOINT, map_location="cpu", weights_only=False)
+        """Restore ``path/checkpoint.pt``. Refused: a file whose pickle would run code (only
+        tensors and plain containers are read) and a checkpoint of another config (it would carry
+        that config's state under this one's name)."""
+        file = Path(path) / CHECKPOINT
+        state = load_weights(file, map_location="cpu")
         if state.get("method") != self.name:
             raise ValueError(f"checkpoint {path} is of method {state.get('method')!r}, not {self.name!r}")
+        diff = config_difference(state.get("trainer", {}).get("config"), to_dict(self.config))
+        if diff:
+            raise ValueError(f"checkpoint {file} was trained under another config ({diff}); it cannot "
+                             "be resumed under this one (delete it, or rerun with --force)")
         self.trainer.load_state_dict(state["trainer"])
+
+
+# Settings that say where a run happens, not what it computes: a checkpoint may move between them.
+PLACEMENT_KEYS = frozenset({"device"})
+
+
+def config_difference(saved: Any, current: dict[str, Any], where: str = "") -> str:
+    """The first setting in which a checkpoint's config differs from ``current`` ("" if none)."""
+    if not isinstance(saved, dict):
+        return "the checkpoint records no config"
+    for k in sorted(set(saved) | set(current)):
+        if k in PLACEMENT_KEYS and not where:
+            continue
+        a, b = saved.get(k, "<absent>"), current.get(k, "<absent>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            inner = config_difference(a, b, f"{where}{k}.")
+            if inner:
+                return inner
+        elif a != b and not (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b)):
+            return f"{where}{k}: checkpoint {a!r}, this run {b!r}"
+    return ""
+
+
+def load_weights(file: Path, map_location: str | torch.device = "cpu") -> Any:
+    """``torch.load`` with ``weights_only=True``: tensors, numbers, strings and containers only, so
+    a shared or planted checkpoint cannot run code when it is read."""
+    try:
+        return torch.load(file, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise ValueError(f"checkpoint {file} refused: it holds objects whose loading could run code, "
+                         f"which an smgs checkpoint never has ({one_line(e)}). Only load checkpoints "
+                         "you trust; an smgs run rewrites it after --force") from None
+    except (RuntimeError, EOFError, OSError) as e:
+        raise ValueError(f"checkpoint {file} is unreadable ({type(e).__name__}: {one_line(e)}); "
+                         "rerun with --force to discard it") from None
+
+
+def one_line(e: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(e).split())
+    return text if len(text) <= limit else text[:limit] + "…"

@@ -72,26 +72,46 @@ def eval_steps(steps: int, fractions: list[float]) -> list[int]:
 
 def _save_checkpoint(run_dir: Path, method, progress: dict) -> None:
     """Checkpoint directory first, then an atomic pointer to it: an interrupted save leaves the
-    previous checkpoint in force."""
+    previous checkpoint in force. ``progress`` carries the cell's config hash, which both the
+    directory and the pointer record, so a checkpoint is only ever resumed by its own config."""
     name = f"ckpt-{progress['step']:07d}"
     d = run_dir / name
     if d.exists():
         shutil.rmtree(d)
     method.save(d)
     atomic_write_text(d / "progress.json", json.dumps(progress))
-    atomic_write_text(run_dir / POINTER, json.dumps({"dir": name}))
+    atomic_write_text(run_dir / POINTER, json.dumps({"dir": name, "config_hash": progress["config_hash"]}))
     for old in run_dir.glob("ckpt-*"):
         if old.name != name:
             shutil.rmtree(old, ignore_errors=True)
 
 
-def _load_checkpoint(run_dir: Path, method) -> dict | None:
+def discard_checkpoints(run_dir: Path) -> None:
+    """Remove the run's checkpoint (pointer first, so a crash midway leaves none in force)."""
+    (run_dir / POINTER).unlink(missing_ok=True)
+    for old in run_dir.glob("ckpt-*"):
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _load_checkpoint(run_dir: Path, method, config_hash: str, log: logging.Logger) -> dict | None:
+    """The progress of this config's checkpoint, restored into ``method``; None (and the checkpoint
+    discarded) when there is none or it belongs to another config."""
     ptr = run_dir / POINTER
     if not ptr.exists():
         return None
-    d = run_dir / json.loads(ptr.read_text())["dir"]
+    try:
+        d = run_dir / json.loads(ptr.read_text())["dir"]
+        progress = json.loads((d / "progress.json").read_text())
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"checkpoint {ptr} is unreadable ({type(e).__name__}: {e}); rerun with --force "
+                         "to discard it") from None
+    if progress.get("config_hash") != config_hash:
+        log.info("checkpoint %s is of config %s, not this cell's %s: discarded, training from step 0",
+                 d, progress.get("config_hash", "<unrecorded>"), config_hash)
+        discard_checkpoints(run_dir)
+        return None
     method.load(d)
-    return json.loads((d / "progress.json").read_text())
+    return progress
 
 
 def _render_rgb(method, camera) -> torch.Tensor:
@@ -138,7 +158,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         log.info("plan: %s", line)
 
     clock = TrainClock("cpu")
-    progress = _load_checkpoint(run_dir, method) or {"step": 0, "train_seconds": 0.0, "curve": []}
+    progress = _load_checkpoint(run_dir, method, result.config_hash, log) or \
+        {"step": 0, "train_seconds": 0.0, "curve": []}
     start = int(progress["step"])
     clock.seconds = float(progress["train_seconds"])
     curve = [CurvePoint(**c) for c in progress["curve"]]
@@ -162,7 +183,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             if every and done % every == 0 and done < steps:
                 with clock.exclude("checkpoint"):
                     _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
-                                                       "curve": [c.__dict__ for c in curve]})
+                                                       "curve": [c.__dict__ for c in curve],
+                                                       "config_hash": result.config_hash})
             bar.update(1)
             if done % 10 == 0 or done == steps:
                 # psnr: this step's training view; test: the last intermediate evaluation
@@ -228,7 +250,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.status = "ok"
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in curve]})
+                                       "curve": [c.__dict__ for c in curve], "config_hash": result.config_hash})
     return result
 
 

@@ -1,0 +1,102 @@
+"""The runner under reruns and damage: --force and a changed config retrain from step 0, a
+checkpoint is never resumed by another config, a bad cell folder fails only its cell."""
+
+import json
+
+import pytest
+
+from baselines.method import MethodSpec
+from baselines.registry import register, unregister
+from baselines.splatting import GaussianSplatting
+from protocols.results import read_result
+from protocols.run import run_experiment
+
+TINY = ["+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]", "grid.scenes=[circle4]",
+        "dataset.size=16", "dataset.steps=12", "report=false", "eval.fps_repeats=1", "eval.flip=false"]
+RUN = "patterns/circle4/{}/cap4/seed0"
+
+
+def tiny(tmp_path, *extra):
+    return TINY + [f"out_dir={tmp_path}", *extra]
+
+
+class Counting(GaussianSplatting):
+    """Records the steps it trains; raises KeyboardInterrupt once at ``interrupt_at``."""
+
+    calls: list = []
+    interrupt_at: int | None = None
+
+    def train_step(self, step):
+        Counting.calls.append(step)
+        if step == Counting.interrupt_at:
+            Counting.interrupt_at = None
+            raise KeyboardInterrupt
+        return super().train_step(step)
+
+
+@pytest.fixture
+def counting():
+    register(MethodSpec("counting", Counting, {"mode": "3dgs"}))
+    Counting.calls.clear()
+    Counting.interrupt_at = None
+    yield Counting
+    unregister("counting")
+
+
+def test_force_and_a_changed_config_train_from_step_0(tmp_path, counting):
+    args = tiny(tmp_path, "grid.methods=[counting]")
+    run_dir = tmp_path / RUN.format("counting")
+    assert run_experiment(args)[0]["status"] == "ok"
+    first = read_result(run_dir / "results.json")
+    assert counting.calls == list(range(12))
+    assert json.loads((run_dir / "checkpoint.json").read_text())["config_hash"] == first.config_hash
+
+    counting.calls.clear()
+    assert run_experiment(args + ["force=true"])[0]["status"] == "ok"
+    assert counting.calls == list(range(12)), "--force must retrain, not resume the final state"
+
+    counting.calls.clear()
+    s = run_experiment(args + ["++method.train.optim={name:3dgs2023+softmaxgs_patterns,means_lr:0.00002}"])
+    assert s[0]["status"] == "ok" and counting.calls == list(range(12))
+    new = read_result(run_dir / "results.json")
+    assert new.config_hash != first.config_hash
+    assert new.config["method"]["train"]["optim"]["means_lr"] == 0.00002
+    assert "resumed" not in (run_dir / "log.txt").read_text()
+
+
+def test_a_mid_run_checkpoint_of_another_config_is_discarded(tmp_path, counting):
+    args = tiny(tmp_path, "grid.methods=[counting]", "checkpoint_every=5")
+    counting.interrupt_at = 7
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(args)
+    counting.calls.clear()
+    assert run_experiment(args + ["++method.train.k_max=64"])[0]["status"] == "ok"
+    assert counting.calls == list(range(12))
+    log = (tmp_path / RUN.format("counting") / "log.txt").read_text()
+    assert "discarded, training from step 0" in log and "resumed" not in log
+
+
+def test_a_corrupt_checkpoint_names_its_file_and_force_discards_it(tmp_path, counting):
+    args = tiny(tmp_path, "grid.methods=[counting]", "checkpoint_every=5")
+    counting.interrupt_at = 7
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(args)
+    ck = tmp_path / RUN.format("counting") / "ckpt-0000005" / "checkpoint.pt"
+    ck.write_bytes(b"not a checkpoint")
+    s = run_experiment(args)
+    assert s[0]["status"] == "failed"
+    assert str(ck) in s[0]["error"] and "--force" in s[0]["error"]
+    counting.calls.clear()
+    assert run_experiment(args + ["force=true"])[0]["status"] == "ok"
+    assert counting.calls == list(range(12))
+
+
+def test_a_file_or_folder_in_the_way_fails_only_its_cell(tmp_path):
+    (tmp_path / RUN.format("3dgs")).parent.mkdir(parents=True)
+    (tmp_path / RUN.format("3dgs")).write_text("in the way")
+    (tmp_path / RUN.format("gef_only") / "results.json").mkdir(parents=True)
+    s = run_experiment(tiny(tmp_path, "grid.methods=[3dgs,gef_only,softmax_gs]"))
+    by = {x["key"].split("/")[2]: x for x in s}
+    assert by["3dgs"]["status"] == "failed" and "is a file where the run's folder should be" in by["3dgs"]["error"]
+    assert by["gef_only"]["status"] == "failed" and "is a folder where" in by["gef_only"]["error"]
+    assert by["softmax_gs"]["status"] == "ok"
