@@ -7,6 +7,7 @@ import platform
 from collections import Counter
 
 from protocols.results import RunResult
+from reports.table import md_text
 from smgs.env import cpu_model, git_revision
 
 ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),
@@ -60,8 +61,8 @@ def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None =
     machine = machine if machine is not None else this_machine()
     lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
     for key, label in ITEMS:
-        lines.append(f"| {label} | {_esc(_runs_value(runs, key))} | {_esc(machine.get(key, 'not recorded'))} |")
-    lines.append(f"| matplotlib | — | {_esc(machine.get('matplotlib', 'unknown'))} |")
+        lines.append(f"| {label} | {md_text(_runs_value(runs, key))} | {md_text(machine.get(key, 'not recorded'))} |")
+    lines.append(f"| matplotlib | — | {md_text(machine.get('matplotlib', 'unknown'))} |")
     devices = sorted({r.render_device for r in runs if r.render_device})
     out = ["\n".join(lines), ""]
     if devices:
@@ -69,7 +70,3 @@ def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None =
     out.append("\"runs\" is what each results.json recorded (a value is listed with its count when runs differ); "
                "\"not recorded\" means no run stored it.")
     return "\n".join(out) + "\n"
-
-
-def _esc(text: str) -> str:
-    return str(text).replace("|", "\\|")
