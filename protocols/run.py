@@ -90,7 +90,10 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.cell import run_cell
     from protocols.executors import execute
 
+    from protocols.validate import validate_payloads
+
     cells, payloads = plan(cfg, overrides)
+    validate_payloads(payloads)
     _preflight(payloads)
     ex = cfg.executor
     print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)
@@ -120,9 +123,18 @@ def run_experiment(overrides: list[str]) -> list[dict]:
         return _run(compose(config_name="config", overrides=overrides), list(overrides))
 
 
+def failure_message(summaries: list[dict]) -> str | None:
+    """What the exit status stands for: None when no cell failed."""
+    failed = sum(s["status"] == "failed" for s in summaries)
+    return f"{failed} of {len(summaries)} run(s) failed (their errors are listed above)" if failed else None
+
+
 @hydra.main(config_path="../configs", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    _run(cfg, list(HydraConfig.get().overrides.task))
+    message = failure_message(_run(cfg, list(HydraConfig.get().overrides.task)))
+    if message:  # a script or CI job driving the harness must see it
+        print(f"error: {message}", file=sys.stderr, flush=True)
+        raise SystemExit(1)
 
 
 def cli() -> None:

@@ -2,6 +2,7 @@
 checkpoint is never resumed by another config, a bad cell folder fails only its cell."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -100,3 +101,39 @@ def test_a_file_or_folder_in_the_way_fails_only_its_cell(tmp_path):
     assert by["3dgs"]["status"] == "failed" and "is a file where the run's folder should be" in by["3dgs"]["error"]
     assert by["gef_only"]["status"] == "failed" and "is a folder where" in by["gef_only"]["error"]
     assert by["softmax_gs"]["status"] == "ok"
+
+
+def test_a_sweep_with_a_failed_cell_exits_non_zero_saying_how_many(tmp_path):
+    import subprocess
+    import sys
+
+    blocked = tmp_path / RUN.format("3dgs")
+    blocked.parent.mkdir(parents=True)
+    blocked.write_text("in the way")
+    p = subprocess.run([sys.executable, "-m", "protocols.run", *tiny(tmp_path, "grid.methods=[3dgs]")],
+                       cwd=Path(__file__).resolve().parent.parent, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 1, p.stderr[-2000:]
+    assert "1 of 1 run(s) failed" in p.stderr
+
+
+@pytest.mark.parametrize("override, words", [
+    ("dataset.steps=-5", ["dataset.steps", "-5", "at least 1"]),
+    ("dataset.steps=0", ["dataset.steps", "at least 1"]),
+    ("dataset.steps=abc", ["dataset.steps", "'abc'", "integer"]),
+    ("eval.fps_repeats=x", ["eval.fps_repeats", "integer"]),
+    ("budget.densify_grad_threshold=high", ["budget.densify_grad_threshold", "number"]),
+    ("dataset.train.optim=nosuch", ["nosuch", "hyperparameter set", "3dgs2023"]),
+    ("++method.train.k_max=lots", ["k_max", "'lots'", "int"]),
+    ("backend=gpu9", ["backend", "gpu9", "reference"]),
+])
+def test_impossible_settings_stop_the_sweep_before_any_cell_runs(tmp_path, override, words):
+    with pytest.raises(SystemExit) as e:
+        run_experiment(tiny(tmp_path, "grid.methods=[3dgs]", override))
+    for w in words:
+        assert w in str(e.value), (w, str(e.value))
+    assert not (tmp_path / RUN.format("3dgs")).exists()
+
+
+def test_protocol_steps_are_checked_too(tmp_path):
+    with pytest.raises(SystemExit, match=r"protocol\.steps.*at least 1"):
+        run_experiment(["+experiment=smoke", f"out_dir={tmp_path}", "report=false", "protocol.steps=0"])
