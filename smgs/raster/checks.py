@@ -23,6 +23,10 @@ a larger size is almost always a unit mistake and is refused before anything is 
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
+class NonFiniteInputError(ValueError):
+    """A renderer input holds NaN or inf (a caller such as the trainer may name its source)."""
+
+
 def image_size(width: object, height: object) -> tuple[int, int]:
     """(width, height) as ints, or a TypeError/ValueError that says what was given."""
     out = []
@@ -64,7 +68,7 @@ def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, 
         count = int(bad.sum())
         if count:
             what = "NaN or -inf" if name in pos_inf_ok else "NaN or inf"
-            raise ValueError(f"{name} has {count} {what} value(s) of {t.numel()}; the renderer takes "
+            raise NonFiniteInputError(f"{name} has {count} {what} value(s) of {t.numel()}; the renderer takes "
                              "finite inputs (find where they became non-finite, e.g. a diverged optimiser)")
 
 
