@@ -9,6 +9,7 @@ them); a failing cell is recorded and the sweep goes on.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from protocols.executors import Terminated, on_sigterm
 from protocols.grid import Cell, expand
 
 log = logging.getLogger("smgs.protocols")
@@ -141,7 +143,13 @@ def cli() -> None:
     # `--force` is accepted as a flag as well as the Hydra override force=true
     if "--force" in sys.argv:
         sys.argv = [a for a in sys.argv if a != "--force"] + ["force=true"]
-    main()
+    signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        main()
+    except Terminated:
+        print("\nstopped by SIGTERM: the running cell was interrupted cleanly; rerun the same command to "
+              "resume from its last checkpoint", file=sys.stderr, flush=True)
+        raise SystemExit(128 + signal.SIGTERM) from None
 
 
 if __name__ == "__main__":

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import torch
 from PIL import Image
-from tqdm import tqdm
 
 from baselines.registry import create_method
 from protocols.datasets import load_scene_for
+from protocols.progress import progress as progress_bar
 from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
 from smgs.env import versions
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
@@ -167,8 +167,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         log.info("resumed from step %d (%.1f s of training)", start, clock.seconds)
     checks = set(eval_steps(steps, list(ev["fractions"])))
     every = int(cfg.get("checkpoint_every") or 0)
-    bar = tqdm(total=steps, initial=start, desc=f"{cfg['scene']}/{name}", unit="step", leave=False,
-               position=1, dynamic_ncols=True)
+    bar = progress_bar(steps, f"{cfg['scene']}/{name}", initial=start, position=1, leave=False)
     with track_peak_memory("cpu") as peak:
         for step in range(start, steps):
             with clock.training():
