@@ -16,6 +16,7 @@ from PIL import Image
 
 from baselines.registry import create_method
 from protocols.datasets import load_scene_for
+from protocols.fps_slot import fps_slot
 from protocols.progress import progress as progress_bar
 from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
 from smgs.env import versions
@@ -224,8 +225,9 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             result.metrics[key] = float(mean)
             result.per_view[key] = values
     result.lpips_net = m.lpips_name
-    fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
-                             warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)))
+    with fps_slot(cfg) as fps_conditions:
+        fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
+                                 warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)))
     result.render_fps = fps.fps
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
@@ -235,7 +237,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.versions = versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
-                            "eval_seconds": clock.excluded.get("eval", 0.0)}
+                            "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
     mode = desc.get("config", {}).get("mode", name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
         diag["frac_within_kmax"] = float(np.mean(within))

@@ -84,6 +84,13 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
     backends = sorted({r.versions.get("backend") for r in runs if r.versions.get("backend")})
     if len(backends) > 1:
         notes.append(f"{what} mixes renderer backends ({', '.join(backends)}).")
+    shared = [(r.diagnostics or {}).get("fps_conditions") or {} for r in runs if r.status == "ok"]
+    shared = [c for c in shared if c.get("cells_in_parallel", 1) > 1]
+    if shared:
+        notes.append(f"FPS of {len(shared)} run(s) was measured while up to "
+                     f"{max(c['cells_in_parallel'] for c in shared) - 1} other cell(s) of the sweep could be "
+                     f"training beside it (executor.kind=local; one cell measured at a time, with "
+                     f"{'/'.join(sorted({str(c.get('threads')) for c in shared}))} thread(s)).")
     q = {bool(r.diagnostics.get("metrics_on_8bit")) for r in runs
          if r.status == "ok" and "metrics_on_8bit" in (r.diagnostics or {})}
     if q == {False}:
