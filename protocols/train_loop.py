@@ -47,6 +47,12 @@ def method_config(cfg: dict) -> dict[str, Any]:
     return mc
 
 
+def left_out_of(plan: list[str]) -> list[str]:
+    """The plan lines that say a stage is off or a scene capability is missing (the rest say what
+    the run uses)."""
+    return [line for line in plan if ": off" in line or line.startswith("scene has no")]
+
+
 SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
 
 
@@ -150,12 +156,12 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     steps = int(desc["config"]["steps"]) if "config" in desc and "steps" in desc["config"] else \
         int(method_config(cfg)["steps"])
     ev = cfg["eval"]
-    left_out = list(desc.get("plan", []))
+    plan = list(desc.get("plan", []))
     if not ev.get("consistency"):
-        left_out.append("view consistency: off (eval.consistency=false)")
+        plan.append("view consistency: off (eval.consistency=false)")
     elif not scene.trajectory and len(scene.test) < 2:
-        left_out.append("view consistency: off (no video trajectory and fewer than 2 test views)")
-    for line in left_out:
+        plan.append("view consistency: off (no video trajectory and fewer than 2 test views)")
+    for line in plan:
         log.info("plan: %s", line)
 
     clock = TrainClock("cpu")
@@ -235,7 +241,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     from smgs.raster import resolve_backend
 
     result.versions = versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
-    diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
+    diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
     mode = desc.get("config", {}).get("mode", name)

@@ -78,7 +78,9 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     for p in [*plots, *diag_plots]:
         files[f"plots/{p.name}"] = p.png
 
-    md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files)
+    probed = sorted({str(row.get("backend")) for row in stability or [] if row.get("backend")}) if computed_here else []
+    md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
+                   probed)
     _write(out, files, md)
     return out / REPORT
 
@@ -121,7 +123,7 @@ def _guard_plots(build) -> tuple[list[Plot], str | None]:
 
 def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, sections: list[Section],
               plots: list[Plot], plot_error: str | None, diag: Section, diag_plots: list[Plot], stab: Section,
-              runs: list[RunResult], files: dict[str, bytes]) -> str:
+              runs: list[RunResult], files: dict[str, bytes], probed: list[str]) -> str:
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = ["# smgs report", "",
@@ -151,7 +153,7 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
     for p in diag_plots:
         out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
     out.append(stab.markdown(link=lambda name: _link(files, name)))
-    out += ["## Environment", "", environment_markdown(runs)]
+    out += ["## Environment", "", environment_markdown(runs, probed_backends=probed)]
     return "\n".join(out).rstrip() + "\n"
 
 

@@ -57,8 +57,12 @@ def _runs_value(runs: list[RunResult], key: str) -> str:
     return "mixed: " + "; ".join(f"{v} ({n} runs)" for v, n in vals.most_common())
 
 
-def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None) -> str:
-    machine = machine if machine is not None else this_machine()
+def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None,
+                         probed_backends: list[str] | None = None) -> str:
+    """``probed_backends``: the renderer backends that this build's stability battery rendered with."""
+    machine = dict(machine if machine is not None else this_machine())
+    if probed_backends:
+        machine["backend"] = f"{', '.join(probed_backends)} (rendered by this report's stability battery)"
     lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
     for key, label in ITEMS:
         lines.append(f"| {label} | {md_text(_runs_value(runs, key))} | {md_text(machine.get(key, 'not recorded'))} |")
