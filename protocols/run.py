@@ -49,9 +49,13 @@ def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
 
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith("dataset=")]
                   + [f"dataset={dataset}"])
-    scenes = OmegaConf.to_container(cfg.dataset, resolve=True).get("scenes")
+    ds = OmegaConf.to_container(cfg.dataset, resolve=True)
+    scenes = ds.get("scenes")
+    if not scenes and ds.get("path") not in (None, "???"):
+        scenes = [Path(str(ds["path"])).name]  # a dataset given by its folder: the folder's name
     if not scenes:
-        raise ValueError(f"dataset {dataset!r} lists no scenes (configs/dataset/{dataset}.yaml: scenes)")
+        raise ValueError(f"dataset {dataset!r} lists no scenes (configs/dataset/{dataset}.yaml: scenes) "
+                         "and has no dataset.path to name one after")
     return [str(s) for s in scenes]
 
 

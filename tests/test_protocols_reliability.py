@@ -163,3 +163,15 @@ def test_sigterm_ends_the_run_cleanly_and_the_log_holds_plain_lines(tmp_path):
     assert "\r" not in err + out and "\x1b" not in err + out
     run_dir = tmp_path / RUN.format("3dgs")
     assert "interrupted" in (run_dir / "log.txt").read_text()
+
+
+def test_a_scene_given_by_its_folder_is_named_after_it(tmp_path):
+    from protocols.run import plan
+    from hydra import compose, initialize_config_dir
+    from protocols.run import CONFIG_DIR
+
+    args = ["dataset=colmap", f"dataset.path={tmp_path}/fern/", "grid.methods=[3dgs]", f"out_dir={tmp_path}/runs"]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cells, payloads = plan(compose(config_name="config", overrides=args), args)
+    assert [c.scene for c in cells] == ["fern"]
+    assert payloads[0]["config"]["scene"] == "fern" and payloads[0]["key"].startswith("colmap/fern/")
