@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import pickle
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -117,10 +118,18 @@ class GaussianSplatting:
         _atomic_write(path / MANIFEST, json.dumps(manifest, indent=1).encode())
 
     def load(self, path: str | Path) -> None:
-        """Restore a checkpoint written on any device onto this method's device."""
-        state = torch.load(Path(path) / CHECKPOINT, map_location=self.device, weights_only=False)
+        """Restore ``path/checkpoint.pt``. Refused: a file whose pickle would run code (only
+        tensors and plain containers are read) and a checkpoint of another config (it would carry
+        that config's state under this one's name). A checkpoint written on any device loads
+        onto this method's device."""
+        file = Path(path) / CHECKPOINT
+        state = load_weights(file, map_location=self.device)
         if state.get("method") != self.name:
             raise ValueError(f"checkpoint {path} is of method {state.get('method')!r}, not {self.name!r}")
+        diff = config_difference(state.get("trainer", {}).get("config"), to_dict(self.config))
+        if diff:
+            raise ValueError(f"checkpoint {file} was trained under another config ({diff}); it cannot "
+                             "be resumed under this one (delete it, or rerun with --force)")
         self.trainer.load_state_dict(state["trainer"])
 
 
@@ -131,9 +140,49 @@ def export_checkpoint_ply(path: str | Path, out: str | Path) -> tuple[Path, int]
     file = path / CHECKPOINT
     if not file.is_file():
         raise FileNotFoundError(f"{file}: no checkpoint there (GaussianSplatting.save writes {CHECKPOINT})")
-    state = torch.load(file, map_location="cpu", weights_only=True)
+    state = load_weights(file, map_location="cpu")
     trainer = state.get("trainer") if isinstance(state, dict) else None
     if not isinstance(trainer, dict) or trainer.get("format") != "smgs.train/1":
         raise ValueError(f"{file}: not a checkpoint of the built-in splatting methods (method "
                          f"{state.get('method') if isinstance(state, dict) else None!r}); only those export a PLY")
     return write_ply(out, splats_from_state(trainer)), int(trainer["step"])
+
+
+# Settings that say where a run happens, not what it computes: a checkpoint may move between them.
+PLACEMENT_KEYS = frozenset({"device"})
+
+
+def config_difference(saved: Any, current: dict[str, Any], where: str = "") -> str:
+    """The first setting in which a checkpoint's config differs from ``current`` ("" if none)."""
+    if not isinstance(saved, dict):
+        return "the checkpoint records no config"
+    for k in sorted(set(saved) | set(current)):
+        if k in PLACEMENT_KEYS and not where:
+            continue
+        a, b = saved.get(k, "<absent>"), current.get(k, "<absent>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            inner = config_difference(a, b, f"{where}{k}.")
+            if inner:
+                return inner
+        elif a != b and not (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b)):
+            return f"{where}{k}: checkpoint {a!r}, this run {b!r}"
+    return ""
+
+
+def load_weights(file: Path, map_location: str | torch.device = "cpu") -> Any:
+    """``torch.load`` with ``weights_only=True``: tensors, numbers, strings and containers only, so
+    a shared or planted checkpoint cannot run code when it is read."""
+    try:
+        return torch.load(file, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise ValueError(f"checkpoint {file} refused: it holds objects whose loading could run code, "
+                         f"which an smgs checkpoint never has ({one_line(e)}). Only load checkpoints "
+                         "you trust; an smgs run rewrites it after --force") from None
+    except (RuntimeError, EOFError, OSError) as e:
+        raise ValueError(f"checkpoint {file} is unreadable ({type(e).__name__}: {one_line(e)}); "
+                         "rerun with --force to discard it") from None
+
+
+def one_line(e: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(e).split())
+    return text if len(text) <= limit else text[:limit] + "…"

@@ -12,13 +12,9 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from smgs.env import versions
-from protocols.results import (RunResult, atomic_write_bytes, atomic_write_text, config_hash,
-                               read_result, write_result)
+from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config_hash, read_result, write_result
 
-CHECKPOINT = "checkpoint.pt"
 LOG = "log.txt"
 # Keys of a cell's config that do not change its result (where and how it runs).
 VOLATILE = ("force", "executor", "report", "out_dir", "data_root", "on_missing", "grid",
@@ -68,35 +64,28 @@ def run_cell(payload: dict) -> dict:
     except DeviceError as e:   # before anything is written: no half-made run directory
         return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
     h = result_hash(cfg)
-    res_path = run_dir / "results.json"
-    if res_path.exists() and not cfg.get("force", False):
-        try:
-            old = read_result(res_path)
-            if old.status == "ok" and old.config_hash == h:
-                return {"key": payload["key"], "status": "ok", "skipped": True}
-        except ValueError:
-            pass  # unreadable: run again
-    run_dir.mkdir(parents=True, exist_ok=True)
-    log = _logger(run_dir)
-    atomic_write_text(run_dir / "config.yaml", _yaml(cfg))
     base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
+    log = None
     try:
+        if _finished(run_dir / RESULTS_FILE, h, bool(cfg.get("force", False))):
+            return {"key": payload["key"], "status": "ok", "skipped": True}
+        run_dir.mkdir(parents=True, exist_ok=True)
+        log = _logger(run_dir)
+        if cfg.get("force", False):
+            from protocols.train_loop import discard_checkpoints
+
+            discard_checkpoints(run_dir)  # --force retrains: nothing of an earlier run is resumed
+        atomic_write_text(run_dir / "config.yaml", _yaml(cfg))
         from protocols.train_loop import train_and_evaluate
         result = train_and_evaluate(cfg, run_dir, base, log)
+        if result.config_hash != h:  # a result is only ever recorded under its own config
+            raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
     except KeyboardInterrupt:
-        log.info("interrupted; rerun to resume from the last checkpoint")
+        if log:
+            log.info("interrupted; rerun to resume from the last checkpoint")
         raise
     except Exception as e:  # recorded; the sweep goes on
-        from protocols.datasets import DatasetMissing
-
-        tb = traceback.format_exc()
-        log.error(tb)
-        skipped = isinstance(e, DatasetMissing)
-        base.status = "skipped" if skipped else "failed"
-        base.error = f"{type(e).__name__}: {e}"
-        base.versions = versions(cfg.get("backend", "auto"), _device_label(cfg["device"]))
-        write_result(run_dir, base)
-        return {"key": payload["key"], "status": base.status, "error": base.error}
+        return _failed(payload["key"], run_dir, base, e, log)
     write_result(run_dir, result)
     return {"key": payload["key"], "status": "ok", "psnr": result.metrics.get("psnr")}
 
@@ -110,24 +99,38 @@ def _device_label(device: str) -> str:
         return device
 
 
+def _finished(res_path: Path, h: str, force: bool) -> bool:
+    """A finished result of this very config is there (and ``force`` is off)."""
+    if res_path.parent.exists() and not res_path.parent.is_dir():
+        raise NotADirectoryError(f"{res_path.parent} is a file where the run's folder should be; move it away")
+    if res_path.is_dir():
+        raise IsADirectoryError(f"{res_path} is a folder where the run's results file should be; move it away")
+    if force or not res_path.exists():
+        return False
+    try:
+        old = read_result(res_path)
+    except ValueError:
+        return False  # unreadable: run again
+    return old.status == "ok" and old.config_hash == h
+
+
+def _failed(key: str, run_dir: Path, base: RunResult, e: Exception, log: logging.Logger | None) -> dict:
+    """Record a failed (or skipped, for missing data) cell in its results.json where it can."""
+    from protocols.datasets import DatasetMissing
+
+    if log:
+        log.error(traceback.format_exc())
+    base.status = "skipped" if isinstance(e, DatasetMissing) else "failed"
+    base.error = f"{type(e).__name__}: {e}"
+    base.versions = versions(base.config.get("backend", "auto"), _device_label(base.config.get("device", "cpu")))
+    try:
+        write_result(run_dir, base)
+    except OSError as w:  # the run's folder itself is the problem: the summary still says why
+        base.error += f" (not recorded in {run_dir}: {type(w).__name__}: {w})"
+    return {"key": key, "status": base.status, "error": base.error}
+
+
 def _yaml(cfg: dict) -> str:
     from omegaconf import OmegaConf
 
     return OmegaConf.to_yaml(OmegaConf.create(cfg))
-
-
-def save_checkpoint(run_dir: Path, state: dict) -> None:
-    import io
-
-    buf = io.BytesIO()
-    torch.save(state, buf)
-    atomic_write_bytes(run_dir / CHECKPOINT, buf.getvalue())
-
-
-def load_checkpoint(run_dir: Path, device: torch.device | str) -> dict | None:
-    """The state saved by ``save_checkpoint``, its tensors on ``device`` whatever device wrote it."""
-    p = run_dir / CHECKPOINT
-    if not p.exists():
-        return None
-    return torch.load(p, map_location=torch.device(device), weights_only=False)
-

@@ -13,7 +13,7 @@ import os
 import traceback
 from typing import Any, Callable
 
-from tqdm import tqdm
+from protocols.progress import progress
 
 Payload = dict[str, Any]
 Summary = dict[str, Any]
@@ -26,10 +26,21 @@ def _died(payload: Payload, err: BaseException | str) -> Summary:
     return {"key": payload.get("key"), "status": "failed", "error": f"worker died: {msg}"}
 
 
-def _init_worker(threads: int) -> None:
-    import torch
+class Terminated(KeyboardInterrupt):
+    """SIGTERM as an interruption: the running cell stops as on Ctrl-C (its last checkpoint stays, the
+    next run resumes from it) and the process ends with a sentence, not a signal's default death."""
 
+
+def on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
+def _init_worker(threads: int) -> None:
+    import signal
+
+    import torch
     torch.set_num_threads(threads)
+    signal.signal(signal.SIGTERM, on_sigterm)  # a terminated worker stops its cell cleanly too
 
 
 def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str = "sequential",
@@ -37,8 +48,7 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
     """Run ``fn`` on every payload and return their summaries in payload order."""
     if kind not in KINDS:
         raise ValueError(f"unknown executor {kind!r}; expected one of {', '.join(KINDS)}")
-    bar = tqdm(total=len(payloads), desc="grid", unit="run", position=0, leave=True,
-               disable=len(payloads) <= 1)
+    bar = progress(len(payloads), "grid", unit="run", disable=len(payloads) <= 1)
     out: list[Summary | None] = [None] * len(payloads)
     try:
         if kind == "sequential":
@@ -52,13 +62,19 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
             with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
                                         initargs=(threads,)) as pool:
                 futs = {pool.submit(fn, p): i for i, p in enumerate(payloads)}
-                for f in cf.as_completed(futs):
-                    i = futs[f]
-                    try:
-                        out[i] = f.result()
-                    except Exception as e:  # the cell could not even record its failure
-                        out[i] = _died(payloads[i], e)
-                    bar.update(1)
+                try:
+                    for f in cf.as_completed(futs):
+                        i = futs[f]
+                        try:
+                            out[i] = f.result()
+                        except Exception as e:  # the cell could not even record its failure
+                            out[i] = _died(payloads[i], e)
+                        bar.update(1)
+                except BaseException:  # interrupted: stop the workers' cells too, not wait for them
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    for proc in list(getattr(pool, "_processes", {}).values()):
+                        proc.terminate()
+                    raise
         else:
             out = _submitit(fn, payloads, kind, slurm or {}, folder or "submitit", bar)
     finally:

@@ -9,6 +9,7 @@ them); a failing cell is recorded and the sweep goes on.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from protocols.executors import Terminated, on_sigterm
 from protocols.grid import Cell, expand
 
 log = logging.getLogger("smgs.protocols")
@@ -47,9 +49,13 @@ def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
 
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith("dataset=")]
                   + [f"dataset={dataset}"])
-    scenes = OmegaConf.to_container(cfg.dataset, resolve=True).get("scenes")
+    ds = OmegaConf.to_container(cfg.dataset, resolve=True)
+    scenes = ds.get("scenes")
+    if not scenes and ds.get("path") not in (None, "???"):
+        scenes = [Path(str(ds["path"])).name]  # a dataset given by its folder: the folder's name
     if not scenes:
-        raise ValueError(f"dataset {dataset!r} lists no scenes (configs/dataset/{dataset}.yaml: scenes)")
+        raise ValueError(f"dataset {dataset!r} lists no scenes (configs/dataset/{dataset}.yaml: scenes) "
+                         "and has no dataset.path to name one after")
     return [str(s) for s in scenes]
 
 
@@ -115,8 +121,11 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.cell import run_cell
     from protocols.executors import execute
 
+    from protocols.validate import validate_payloads
+
     cells, payloads = plan(cfg, overrides)
     check_devices(payloads, str(cfg.executor.kind))
+    validate_payloads(payloads)
     _preflight(payloads)
     ex = cfg.executor
     print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)
@@ -146,16 +155,31 @@ def run_experiment(overrides: list[str]) -> list[dict]:
         return _run(compose(config_name="config", overrides=overrides), list(overrides))
 
 
+def failure_message(summaries: list[dict]) -> str | None:
+    """What the exit status stands for: None when no cell failed."""
+    failed = sum(s["status"] == "failed" for s in summaries)
+    return f"{failed} of {len(summaries)} run(s) failed (their errors are listed above)" if failed else None
+
+
 @hydra.main(config_path="../configs", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    _run(cfg, list(HydraConfig.get().overrides.task))
+    message = failure_message(_run(cfg, list(HydraConfig.get().overrides.task)))
+    if message:  # a script or CI job driving the harness must see it
+        print(f"error: {message}", file=sys.stderr, flush=True)
+        raise SystemExit(1)
 
 
 def cli() -> None:
     # `--force` is accepted as a flag as well as the Hydra override force=true
     if "--force" in sys.argv:
         sys.argv = [a for a in sys.argv if a != "--force"] + ["force=true"]
-    main()
+    signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        main()
+    except Terminated:
+        print("\nstopped by SIGTERM: the running cell was interrupted cleanly; rerun the same command to "
+              "resume from its last checkpoint", file=sys.stderr, flush=True)
+        raise SystemExit(128 + signal.SIGTERM) from None
 
 
 if __name__ == "__main__":

@@ -14,10 +14,11 @@ from typing import Any
 import numpy as np
 import torch
 from PIL import Image
-from tqdm import tqdm
 
 from protocols.datasets import load_scene_for
 from protocols.ply import after_run, make_method
+from protocols.fps_slot import fps_slot
+from protocols.progress import progress as progress_bar
 from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
@@ -48,6 +49,12 @@ def method_config(cfg: dict) -> dict[str, Any]:
     return mc
 
 
+def left_out_of(plan: list[str]) -> list[str]:
+    """The plan lines that say a stage is off or a scene capability is missing (the rest say what
+    the run uses)."""
+    return [line for line in plan if ": off" in line or line.startswith("scene has no")]
+
+
 SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
 
 
@@ -74,26 +81,46 @@ def eval_steps(steps: int, fractions: list[float]) -> list[int]:
 
 def _save_checkpoint(run_dir: Path, method, progress: dict) -> None:
     """Checkpoint directory first, then an atomic pointer to it: an interrupted save leaves the
-    previous checkpoint in force."""
+    previous checkpoint in force. ``progress`` carries the cell's config hash, which both the
+    directory and the pointer record, so a checkpoint is only ever resumed by its own config."""
     name = f"ckpt-{progress['step']:07d}"
     d = run_dir / name
     if d.exists():
         shutil.rmtree(d)
     method.save(d)
     atomic_write_text(d / "progress.json", json.dumps(progress))
-    atomic_write_text(run_dir / POINTER, json.dumps({"dir": name}))
+    atomic_write_text(run_dir / POINTER, json.dumps({"dir": name, "config_hash": progress["config_hash"]}))
     for old in run_dir.glob("ckpt-*"):
         if old.name != name:
             shutil.rmtree(old, ignore_errors=True)
 
 
-def _load_checkpoint(run_dir: Path, method) -> dict | None:
+def discard_checkpoints(run_dir: Path) -> None:
+    """Remove the run's checkpoint (pointer first, so a crash midway leaves none in force)."""
+    (run_dir / POINTER).unlink(missing_ok=True)
+    for old in run_dir.glob("ckpt-*"):
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _load_checkpoint(run_dir: Path, method, config_hash: str, log: logging.Logger) -> dict | None:
+    """The progress of this config's checkpoint, restored into ``method``; None (and the checkpoint
+    discarded) when there is none or it belongs to another config."""
     ptr = run_dir / POINTER
     if not ptr.exists():
         return None
-    d = run_dir / json.loads(ptr.read_text())["dir"]
+    try:
+        d = run_dir / json.loads(ptr.read_text())["dir"]
+        progress = json.loads((d / "progress.json").read_text())
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"checkpoint {ptr} is unreadable ({type(e).__name__}: {e}); rerun with --force "
+                         "to discard it") from None
+    if progress.get("config_hash") != config_hash:
+        log.info("checkpoint %s is of config %s, not this cell's %s: discarded, training from step 0",
+                 d, progress.get("config_hash", "<unrecorded>"), config_hash)
+        discard_checkpoints(run_dir)
+        return None
     method.load(d)
-    return json.loads((d / "progress.json").read_text())
+    return progress
 
 
 def _prepare_kernels(mc: dict, device: torch.device, log: logging.Logger) -> float:
@@ -148,12 +175,12 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     steps = int(desc["config"]["steps"]) if "config" in desc and "steps" in desc["config"] else \
         int(method_config(cfg)["steps"])
     ev = cfg["eval"]
-    left_out = list(desc.get("plan", []))
+    plan = list(desc.get("plan", []))
     if not ev.get("consistency"):
-        left_out.append("view consistency: off (eval.consistency=false)")
+        plan.append("view consistency: off (eval.consistency=false)")
     elif not scene.trajectory and len(scene.test) < 2:
-        left_out.append("view consistency: off (no video trajectory and fewer than 2 test views)")
-    for line in left_out:
+        plan.append("view consistency: off (no video trajectory and fewer than 2 test views)")
+    for line in plan:
         log.info("plan: %s", line)
 
     # Compiled kernels are built (or loaded) before the train clock starts: a build is never a
@@ -161,7 +188,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.build_seconds = _prepare_kernels(desc.get("config") or method_config(cfg), device, log)
 
     clock = TrainClock(device)
-    progress = _load_checkpoint(run_dir, method) or {"step": 0, "train_seconds": 0.0, "curve": []}
+    progress = _load_checkpoint(run_dir, method, result.config_hash, log) or \
+        {"step": 0, "train_seconds": 0.0, "curve": []}
     start = int(progress["step"])
     clock.seconds = float(progress["train_seconds"])
     curve = [CurvePoint(**c) for c in progress["curve"]]
@@ -169,8 +197,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         log.info("resumed from step %d (%.1f s of training)", start, clock.seconds)
     checks = set(eval_steps(steps, list(ev["fractions"])))
     every = int(cfg.get("checkpoint_every") or 0)
-    bar = tqdm(total=steps, initial=start, desc=f"{cfg['scene']}/{name}", unit="step", leave=False,
-               position=1, dynamic_ncols=True)
+    bar = progress_bar(steps, f"{cfg['scene']}/{name}", initial=start, position=1, leave=False)
     with track_peak_memory(device) as peak:
         for step in range(start, steps):
             with clock.training():
@@ -185,7 +212,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             if every and done % every == 0 and done < steps:
                 with clock.exclude("checkpoint"):
                     _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
-                                                       "curve": [c.__dict__ for c in curve]})
+                                                       "curve": [c.__dict__ for c in curve],
+                                                       "config_hash": result.config_hash})
             bar.update(1)
             if done % 10 == 0 or done == steps:
                 # psnr: this step's training view; test: the last intermediate evaluation
@@ -227,9 +255,10 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             result.metrics[key] = float(mean)
             result.per_view[key] = values
     result.lpips_net = m.lpips_name
-    fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
-                             warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)),
-                             device=device)
+    with fps_slot(cfg) as fps_conditions:
+        fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
+                                 warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)),
+                                 device=device)
     result.render_fps = fps.fps
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
@@ -237,9 +266,9 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     from smgs.raster import resolve_backend
 
     result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
-    diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
+    diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
-                            "eval_seconds": clock.excluded.get("eval", 0.0)}
+                            "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
     mode = desc.get("config", {}).get("mode", name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
         diag["frac_within_kmax"] = float(np.mean(within))
@@ -253,7 +282,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.status = "ok"
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in curve]})
+                                       "curve": [c.__dict__ for c in curve], "config_hash": result.config_hash})
     after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
 

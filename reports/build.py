@@ -27,7 +27,7 @@ from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
 from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
 from reports.stability import compute_stability, stability_section
-from reports.table import Section
+from reports.table import Section, md_text
 from reports.tables import Context, table1, table2, table3, table4, table5
 from reports.tradeoff import tradeoff_points
 
@@ -80,7 +80,9 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     for p in [*plots, *diag_plots]:
         files[f"plots/{p.name}"] = p.png
 
-    md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files)
+    probed = sorted({str(row.get("backend")) for row in stability or [] if row.get("backend")}) if computed_here else []
+    md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
+                   probed)
     files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
                               plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
                               csv_link=lambda name: _link(files, name)).encode()
@@ -126,19 +128,19 @@ def _guard_plots(build) -> tuple[list[Plot], str | None]:
 
 def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, sections: list[Section],
               plots: list[Plot], plot_error: str | None, diag: Section, diag_plots: list[Plot], stab: Section,
-              runs: list[RunResult], files: dict[str, bytes]) -> str:
+              runs: list[RunResult], files: dict[str, bytes], probed: list[str]) -> str:
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = ["# smgs report", "",
-           f"Runs directory: `{runs_dir.resolve()}` · built {when} · {len(runs)} results ("
+           f"Runs directory: {md_text(runs_dir.resolve())} · built {when} · {len(runs)} results ("
            + ", ".join(f"{n} {s}" for s, n in sorted(status.items())) + ")", ""]
     presets = Counter(r.preset for r in runs)
     if presets:
         out.append("Protocol presets: " + "; ".join(
-            f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})"
+            md_text(f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})")
             for p, n in sorted(presets.items())) + ".")
         out.append("")
-    out.append(f"Paper's numbers: {paper_error}." if paper_error else
+    out.append(f"Paper's numbers: {md_text(paper_error)}." if paper_error else
                "Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).")
     out += ["", READING_GUIDE, ""]
     out.append(_problems(loaded, runs))
@@ -149,14 +151,14 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
         for p in plots:
             out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
     elif plot_error:
-        out.append(f"Not produced: the plots could not be drawn: {plot_error} (traceback on stderr).\n")
+        out.append(f"Not produced: the plots could not be drawn: {md_text(plot_error)} (traceback on stderr).\n")
     else:
         out.append("Not produced: no finished run records a training curve, FPS or Gaussian count.\n")
     out.append(diag.markdown(link=lambda name: _link(files, name)))
     for p in diag_plots:
         out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
     out.append(stab.markdown(link=lambda name: _link(files, name)))
-    out += ["## Environment", "", environment_markdown(runs)]
+    out += ["## Environment", "", environment_markdown(runs, probed_backends=probed)]
     return "\n".join(out).rstrip() + "\n"
 
 
@@ -175,19 +177,15 @@ def _problems(loaded: LoadedRuns, runs: list[RunResult]) -> str:
         for r in bad[:MAX_LISTED_FAILURES]:
             key = f"{r.dataset}/{r.scene}/{r.method}/{r.budget}/seed{r.seed}" + \
                 ("" if r.preset == "paper" else f" [{r.preset}]")
-            out.append(f"| {key} | {r.status} | {_esc(one_line(r.error or 'no error recorded', 300))} |")
+            out.append(f"| {md_text(key)} | {md_text(r.status)} | {md_text(one_line(r.error or 'no error recorded', 300))} |")
         if len(bad) > MAX_LISTED_FAILURES:
             out.append(f"\n… and {len(bad) - MAX_LISTED_FAILURES} more (tables/runs.csv lists every run).")
         out.append("")
     for path, err in loaded.unreadable:
-        out.append(f"- Unreadable results file, left out: `{path}`: {_esc(one_line(err, 300))}")
+        out.append(f"- Unreadable results file, left out: {md_text(path)}: {md_text(one_line(err, 300))}")
     for dropped, kept in loaded.duplicates:
-        out.append(f"- Duplicate result for the same run, left out: `{dropped}` (kept `{kept}`)")
+        out.append(f"- Duplicate result for the same run, left out: {md_text(dropped)} (kept {md_text(kept)})")
     return "\n".join(out) + "\n"
-
-
-def _esc(text: str) -> str:
-    return str(text).replace("|", "\\|")
 
 
 # ---- files --------------------------------------------------------------------------------------
@@ -240,10 +238,19 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
         atomic_write_bytes(out / rel, data)
     atomic_write_text(out / REPORT, md)
     atomic_write_text(out / MANIFEST, json.dumps(sorted(files)))
-    for rel in set(old) - set(files):
-        p = out / rel
-        if p.is_file() and ".." not in Path(rel).parts:
-            p.unlink()
+    for rel in set(map(str, old if isinstance(old, list) else [])) - set(files):
+        if _ours(out, rel):
+            (out / rel).unlink()
+
+
+def _ours(out: Path, rel: str) -> bool:
+    """Only a file this code writes may be removed: ``tables/<name>.csv`` or ``plots/<name>.png``
+    directly below the report folder (the manifest is data in a shared folder, never trusted)."""
+    parts = Path(rel).parts
+    if len(parts) != 2 or (parts[0], Path(parts[1]).suffix) not in (("tables", ".csv"), ("plots", ".png")):
+        return False
+    p = out / rel
+    return p.is_file() and not p.is_symlink() and p.resolve().parent == (out / parts[0]).resolve()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,6 +7,7 @@ import platform
 from collections import Counter
 
 from protocols.results import RunResult
+from reports.table import md_text
 from smgs.env import cpu_model, git_revision
 
 ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),
@@ -62,11 +63,15 @@ def environment_rows(runs: list[RunResult], machine: dict[str, str]) -> list[tup
     return rows + [("matplotlib", "—", machine.get("matplotlib", "unknown"))]
 
 
-def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None) -> str:
-    machine = machine if machine is not None else this_machine()
+def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None,
+                         probed_backends: list[str] | None = None) -> str:
+    """``probed_backends``: the renderer backends that this build's stability battery rendered with."""
+    machine = dict(machine if machine is not None else this_machine())
+    if probed_backends:
+        machine["backend"] = f"{', '.join(probed_backends)} (rendered by this report's stability battery)"
     lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
     for label, ran, here in environment_rows(runs, machine):
-        lines.append(f"| {label} | {_esc(ran)} | {_esc(here)} |")
+        lines.append(f"| {label} | {md_text(ran)} | {md_text(here)} |")
     devices = sorted({r.render_device for r in runs if r.render_device})
     out = ["\n".join(lines), ""]
     if devices:
@@ -74,7 +79,3 @@ def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None =
     out.append("\"runs\" is what each results.json recorded (a value is listed with its count when runs differ); "
                "\"not recorded\" means no run stored it.")
     return "\n".join(out) + "\n"
-
-
-def _esc(text: str) -> str:
-    return str(text).replace("|", "\\|")

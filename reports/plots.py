@@ -187,11 +187,36 @@ def _pareto_panel(ax, panel: str, pts: list[Point], xlabel: str, x_higher_better
         ax.annotate(p.label, (p.x.mean, p.psnr.mean), fontsize=6, xytext=(3, 3), textcoords="offset points")
     if log_x:
         ax.set_xscale("log")
+        _sparse_log_ticks(ax)
     ax.set_title(panel, fontsize=9)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6, loc="best")
+
+
+def compact_number(v: float) -> str:
+    """3000 -> "3k", 1500000 -> "1.5M": short tick labels."""
+    for div, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(v) >= div:
+            return f"{v / div:.3g}{suffix}"
+    return f"{v:.3g}"
+
+
+def _sparse_log_ticks(ax, most: int = 5) -> None:
+    """At most ``most`` labelled ticks on a log x axis, compactly written: matplotlib's default
+    labels minor ticks too when the range is under a decade, and they run into each other."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, LogLocator, MaxNLocator, NullFormatter
+
+    lo, hi = ax.get_xlim()
+    if hi / lo < 10:  # under a decade: evenly spaced round values
+        ticks = [t for t in MaxNLocator(nbins=most - 1).tick_values(lo, hi) if lo <= t <= hi and t > 0]
+        ax.xaxis.set_major_locator(FixedLocator(ticks))
+    else:
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if hi / lo < 1e3 else (1.0,),
+                                              numticks=most + 1))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: compact_number(v)))
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def panel_name(dataset: str, scene: str | None = None) -> str:

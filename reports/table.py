@@ -7,6 +7,7 @@ prints ours / paper as ×r (counts, minutes, FPS: quantities compared by scale).
 
 from __future__ import annotations
 
+import html
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
@@ -186,7 +187,7 @@ class Table:
         if foot or self.notes:
             out.append("")
         out += foot
-        out += [f"- {n}" for n in self.notes]
+        out += [f"- {md_text(n)}" for n in self.notes]
         return "\n".join(out)
 
     # -- CSV --------------------------------------------------------------------------------
@@ -260,8 +261,14 @@ def _value_cell(v: Value, c: Column, rank: int | None, notes: "Footnotes") -> Ce
     return Cell(text, rank, [notes.mark(n) for n in v.notes], v.mean)
 
 
-def _esc(text: str) -> str:
-    return str(text).replace("|", "\\|").replace("\n", " ")
+def md_text(text: object) -> str:
+    """Text for one line of report.md, inert: HTML escaped (an error message or a config value is
+    data, never markup), table pipes escaped, no link target, one line."""
+    s = html.escape(" ".join(str(text).split()), quote=False)
+    return s.replace("|", "\\|").replace("](", "]\\(")
+
+
+_esc = md_text
 
 
 class Footnotes:
@@ -300,13 +307,13 @@ class Section:
 
     def markdown(self, level: int = 2, link: Callable[[str], str | None] = lambda name: None) -> str:
         out = [f"{'#' * level} {self.title}", ""]
-        out += [p + "\n" for p in self.intro]
+        out += [md_text(p) + "\n" for p in self.intro]
         if self.empty_reason:
-            out += [f"Not produced: {self.empty_reason}", ""]
+            out += [f"Not produced: {md_text(self.empty_reason)}", ""]
             return "\n".join(out)
         for b in self.blocks:
             out += [b.markdown(), ""]
-        out += [f"- {n}" for n in self.notes]
+        out += [f"- {md_text(n)}" for n in self.notes]
         csv_link = link(self.name)
         if csv_link and (self.blocks or self.records):
             out += ["", f"Machine-readable: [{csv_link}]({csv_link})"]

@@ -113,7 +113,7 @@ def test_hand_written_extras_are_raw_values_under_exp_and_the_scene_extent(scene
 def test_train_export_import_renders_the_same(scene, tmp_path, method):
     cfg = {"steps": 8, "sh_degree_interval": 3, "densify": {"enabled": False},
            "optim": {"alpha_lr": 1e-2, "beta_lr": 1e-2, "gamma_lr": 1e-2, "shN_lr": 1e-2}}
-    m = create_method(method, scene, cfg)
+    m = create_method(method, scene, cfg, device="cpu")
     for step in range(8):
         m.train_step(step)
     path = m.export_ply(tmp_path / "model.ply")

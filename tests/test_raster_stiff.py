@@ -136,7 +136,7 @@ def test_gef_gradient_at_the_centre_is_finite_for_alpha_below_one():
 
 def test_tiny_absorbance_survives_in_alpha():
     """alpha = 1 - T is carried as A + a·T: a single faint splat keeps full relative precision."""
-    s = base_scene(torch.float32, n=1)
+    s = {k: v.float() for k, v in base_scene(torch.float32, n=1).items()}
     s["opacities"] = torch.tensor([0.0045])
     o = rasterize_splats(*[s[k] for k in KEYS], W, H, mode="softmax_gs", backend="reference")
     s64 = {k: v.double() for k, v in s.items()}

@@ -8,6 +8,7 @@ from typing import Callable
 import torch
 
 from smgs.camera import Camera
+from smgs.raster import checks
 from smgs.raster import constants as K
 from smgs.raster.projection import project_gaussians
 from smgs.raster.sh import eval_sh
@@ -71,7 +72,15 @@ def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype
     return "reference"
 
 
-def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode) -> None:
+BACKEND_NAMES: tuple[str, ...] = tuple(_BACKENDS)
+
+
+def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode,
+                  background=None, reg_values=None) -> None:
+    """Shapes, dtypes and finiteness (``smgs.raster.checks`` has the policy), before any backend."""
+    named = [("means2d", means2d), ("conics", conics), ("opacities", opacities), ("colors", colors),
+             ("depths", depths), ("alpha", alpha), ("beta", beta), ("gamma", gamma)]
+    checks.float_dtypes(named)
     n = means2d.shape[0]
     if means2d.shape != (n, 2):
         raise ValueError(f"means2d must be [N,2], got {tuple(means2d.shape)}")
@@ -88,6 +97,9 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
             raise ValueError(f"mode {mode!r} needs {name} [N]; got None")
         if t.shape != (n,):
             raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+    used = {"alpha": use_gef, "beta": use_softmax, "gamma": use_softmax}
+    checks.finite([(k, t) for k, t in named if used.get(k, True)]
+                  + [("background", background), ("reg_values", reg_values)], pos_inf_ok=("gamma",))
 
 
 def rasterize_splats(
@@ -122,7 +134,8 @@ def rasterize_splats(
     transmittance below it is not composited and the pixel stops (default 1e-4, the 3DGS rule;
     0 never stops).
     """
-    _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode)
+    _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
+    width, height = checks.image_size(width, height)
     if eq15 not in ("solved", "printed"):
         raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
     if k_max < 0:
@@ -171,6 +184,12 @@ def rasterize(
                            ("opacities", opacities, (n,))):
         if t.shape != shape:
             raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
+    checks.float_dtypes([("means3d", means3d), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                         ("colors_or_sh", colors_or_sh)])
+    checks.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
+                   ("camera.K", camera.K), ("camera.viewmat", camera.viewmat)])
+    checks.non_negative("scales", scales)
+    checks.image_size(camera.width, camera.height)
     # The reference backend is the oracle: pure PyTorch throughout, so its projection is too.
     proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
                              fused=False if backend == "reference" else None)

@@ -259,8 +259,28 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
         return value
     if origin is tuple and isinstance(value, (list, tuple)):
         return tuple(value)
-    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+    if origin is Literal and value not in typing.get_args(tp):
+        raise ValueError(f"{where}={value!r}: expected one of {', '.join(map(repr, typing.get_args(tp)))}")
+    return _scalar(tp, value, where)
+
+
+def _scalar(tp: Any, value: Any, where: str) -> Any:
+    """A scalar setting of the declared type (an int may stand for a float, an integral float for an
+    int); anything else is an error naming the key, not a value that fails later."""
+    is_int = isinstance(value, int) and not isinstance(value, bool)
+    if tp is float:
+        if not (is_int or isinstance(value, float)):
+            raise TypeError(f"{where}={value!r}: expected a number")
         return float(value)
+    if tp is int:
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if not is_int:
+            raise TypeError(f"{where}={value!r}: expected an int")
+    if tp is bool and not isinstance(value, bool):
+        raise TypeError(f"{where}={value!r}: expected true or false")
+    if tp is str and not isinstance(value, str):
+        raise TypeError(f"{where}={value!r}: expected a string")
     return value
 
 
@@ -281,7 +301,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, _where: str = "") -> T:
         where = f"{_where}.{k}" if _where else k
         if cls is TrainConfig and k == "optim" and isinstance(v, (str, dict)):
             v = {"name": v} if isinstance(v, str) else v
-            base = hparams(v["name"]) if v.get("name") in HPARAMS else OptimConfig()
+            base = hparams(v["name"]) if v.get("name") is not None else OptimConfig()  # unknown: an error
             kwargs[k] = dataclasses.replace(base, **{kk: _convert(hints_of(OptimConfig)[kk], vv, where)
                                                      for kk, vv in v.items() if _check_key(OptimConfig, kk, where)})
             continue

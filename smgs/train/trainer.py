@@ -19,6 +19,7 @@ from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.device import check_backend, generator_state, resolve_device, restore_generator
 from smgs.raster import RenderOutput, mode_flags, rasterize
+from smgs.raster.checks import NonFiniteInputError
 from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
@@ -223,7 +224,11 @@ class Trainer:
         bg = None
         if cfg.random_background:
             bg = torch.rand(3, generator=self.gen, device=self.device)
-        out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
+        try:
+            out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
+        except NonFiniteInputError:
+            self.check_finite(self.step_count, "before the step")  # names the parameter group
+            raise
         track = self.strategy.active(it)
         stats = track and self.strategy.wants_stats(len(g))
         means2d = out.extras["means2d"]
