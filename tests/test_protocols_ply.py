@@ -42,8 +42,10 @@ def test_a_pretrained_ply_scores_as_the_run_that_trained_it(runs, method, capsys
     assert b.train_seconds is None and b.steps == 0 and a.train_seconds > 0
     # the same test views, the same 8-bit metrics, the same renders
     assert b.per_view == a.per_view and b.metrics == a.metrics and b.num_gaussians == a.num_gaussians
-    for png in (trained / "renders").iterdir():
-        assert (here / "renders" / png.name).read_bytes() == png.read_bytes()
+    pngs = sorted((trained / "renders").rglob("*.png"))   # renders, and the viewer's ground truth and error maps
+    assert pngs
+    for png in pngs:
+        assert (here / png.relative_to(trained)).read_bytes() == png.read_bytes()
     assert b.render_fps > 0
     # a second call finds it done; method= that contradicts the file is refused
     assert evaluate_ply.main([str(ply), f"out_dir={runs}", "report=false", *SCENE]) == 0
