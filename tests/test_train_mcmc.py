@@ -9,6 +9,7 @@ import torch
 from smgs.camera import Camera
 from smgs.data.patterns import pattern_scene
 from smgs.raster import rasterize
+from smgs.raster.projection import quat_to_rotmat
 from smgs.train import GaussianConfig, Gaussians, TrainConfig, densify_config, from_dict, pattern_config, to_dict
 from smgs.train.mcmc import MCMCStrategy, noise_gate, position_noise, relocation
 from smgs.train.optim import GaussianOptimizer
@@ -134,11 +135,25 @@ def test_noise_vanishes_for_opaque_gaussians():
     noise = position_noise(g, lr_means=1.6e-4, noise_lr=5e5, k=100.0, t=0.005,
                            generator=torch.Generator().manual_seed(0))
     norms = noise.norm(dim=1)
-    assert float(norms[0]) < 1e-40 and float(norms[1]) < 1e-35 and float(norms[3]) > 1e-5
+    assert float(norms[0]) == 0 and float(norms[1]) == 0 and float(norms[2]) == 0 and float(norms[3]) > 1e-5
     st = _mcmc(refine_every=1000)           # a step without refinement: only the noise moves means
     before = g.means.detach().clone()
     st.step_post_backward(1, g, opt, None, None, lr_means=1.6e-4)
     assert torch.equal(g.means[:3], before[:3]) and not torch.equal(g.means[3], before[3])
+
+
+def test_noise_is_the_covariance_times_a_normal_sample():
+    g, _ = _gaussians([0.001, 0.01, 0.02, 0.05])
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        g.params["quats"].copy_(torch.randn(4, 4, generator=gen))
+        g.params["scales"].copy_(torch.randn(4, 3, generator=gen).mul(0.5).add(-1.0))
+    got = position_noise(g, 1e-4, 5e5, 100.0, 0.005, torch.Generator().manual_seed(2))
+    eps = torch.randn((4, 3), generator=torch.Generator().manual_seed(2))
+    rot, s = quat_to_rotmat(g.quats.detach()), torch.diag_embed(g.scales.detach())
+    cov = rot @ s @ s @ rot.transpose(1, 2)
+    gate = torch.sigmoid(-100.0 * (g.opacities.detach() - 0.005))
+    torch.testing.assert_close(got, (cov @ eps[:, :, None]).squeeze(-1) * (gate * 5e5 * 1e-4)[:, None])
 
 
 # -- in training -----------------------------------------------------------------------------

@@ -33,6 +33,10 @@ N_MAX = 51
 """Largest number of Gaussians one source becomes in one relocation (gsplat's table size); a
 source drawn more often is treated as N_MAX (its copies are then a little too faint)."""
 
+GATE_FLOOR = 1e-20
+"""Gates below this are set to 0: the step they give is far below the float32 resolution of any
+mean, and an opaque Gaussian's gate (~e^-99) would otherwise make subnormal products."""
+
 SEED_OFFSET = 104_729
 """Offsets the strategy's random stream from the trainer's (same run seed)."""
 
@@ -82,10 +86,11 @@ def position_noise(g: Gaussians, lr_means: float, noise_lr: float, k: float, t: 
     means = g.means.detach()
     eps = torch.randn(means.shape, generator=generator, dtype=means.dtype, device=means.device)
     rot = quat_to_rotmat(g.quats.detach())
-    s2 = g.scales.detach().square()
-    cov_eps = rot @ (s2 * (rot.transpose(-1, -2) @ eps[:, :, None]).squeeze(-1))[:, :, None]
+    local = (rot * eps[:, :, None]).sum(1) * g.scales.detach().square()      # S² Rᵀ ε
+    cov_eps = (rot * local[:, None, :]).sum(2)                               # R S² Rᵀ ε
     gate = noise_gate(g.opacities.detach(), k, t)
-    return cov_eps.squeeze(-1) * (gate * noise_lr * lr_means)[:, None]
+    gate = torch.where(gate > GATE_FLOOR, gate, torch.zeros_like(gate))
+    return cov_eps * (gate * noise_lr * lr_means)[:, None]
 
 
 class MCMCStrategy:
