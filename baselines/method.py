@@ -2,8 +2,11 @@
 
 What changed from nerfbaselines, and why:
 
-* Set-up is the constructor ``cls(scene, config, name=...)`` with a plain nested dict ``config``
-  (Hydra-free); the registry merges the method's fixed settings first and rejects conflicts.
+* Set-up is the constructor ``cls(scene, config, name=..., device=...)`` with a plain nested dict
+  ``config`` (Hydra-free); the registry merges the method's fixed settings first and rejects
+  conflicts. ``device`` is the run's ``torch.device`` (already resolved and checked, e.g.
+  ``cuda:0`` or ``cpu``): every tensor the method makes lives there, and ``load`` maps a checkpoint
+  written on any device onto it.
 * A method declares what it needs from a scene as data (``SceneNeeds``: required and optional
   scene capabilities, the same names as ``Scene.capabilities``); the registry checks a scene before
   set-up, so "no SfM points" fails with a sentence instead of a KeyError deep inside a method.
@@ -22,6 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Protocol, runtime_checkable
+
+import torch
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
@@ -59,7 +64,7 @@ class SceneNeeds:
 class Method(Protocol):
     """A trainable, renderable scene representation. The harness owns the loop::
 
-        m = create_method("softmax_gs", scene, config)
+        m = create_method("softmax_gs", scene, config, device="auto")
         for step in range(steps):
             logs = m.train_step(step)
         out = m.render(scene.test[0].camera)
@@ -67,7 +72,8 @@ class Method(Protocol):
 
     needs: ClassVar[SceneNeeds]
 
-    def __init__(self, scene: Scene, config: dict[str, Any] | None = None, *, name: str | None = None) -> None:
+    def __init__(self, scene: Scene, config: dict[str, Any] | None = None, *, name: str | None = None,
+                 device: torch.device) -> None:
         ...
 
     def train_step(self, step: int) -> dict[str, float]:
@@ -86,7 +92,8 @@ class Method(Protocol):
         ...
 
     def load(self, path: str | Path) -> None:
-        """Restore a checkpoint written by ``save`` into this (set-up) method."""
+        """Restore a checkpoint written by ``save`` (on any device) into this (set-up) method, on
+        its own device."""
         ...
 
     def describe(self) -> dict[str, Any]:

@@ -14,12 +14,16 @@ from __future__ import annotations
 
 import copy
 import importlib
+import inspect
 import warnings
 from importlib import metadata
 from typing import Any
 
+import torch
+
 from baselines.method import Method, MethodSpec, SceneNeeds
 from smgs.data.scene import Scene
+from smgs.device import resolve_device
 
 ENTRY_POINT_GROUP = "smgs.methods"
 
@@ -120,9 +124,24 @@ def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str,
     return merge_config(config, spec.fixed)
 
 
-def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None) -> Method:
-    """Check the scene against the method's needs, then set the method up."""
+def _takes_device(cls: type) -> bool:
+    try:
+        params = inspect.signature(cls).parameters.values()
+    except (TypeError, ValueError):     # no introspectable signature: let the call decide
+        return True
+    return any(p.name == "device" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+
+
+def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None, *,
+                  device: torch.device | str) -> Method:
+    """Check the scene against the method's needs, then set the method up on ``device`` (a
+    ``torch.device`` or a setting of ``smgs.device.resolve_device``: "auto", "cpu", "cuda:1")."""
+    dev = resolve_device(device)
     cls = method_class(name)
+    if not _takes_device(cls):
+        raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) takes no `device` argument; "
+                        "a method's constructor is __init__(scene, config, *, name, device) and creates "
+                        "its tensors on that device (README, 'Adding a method')")
     needs: SceneNeeds = getattr(cls, "needs", SceneNeeds())
     needs.check(scene, name)
-    return cls(scene, resolve_config(name, config), name=name)
+    return cls(scene, resolve_config(name, config), name=name, device=dev)

@@ -35,11 +35,15 @@ class GaussianSplatting:
     needs: ClassVar[SceneNeeds] = SceneNeeds(optional=frozenset({"sfm_points", "view_dependence", "background"}))
 
     def __init__(self, scene: Scene, config: dict[str, Any] | TrainConfig | None = None, *,
-                 name: str | None = None) -> None:
+                 name: str | None = None, device: torch.device | str) -> None:
         cfg = config if isinstance(config, TrainConfig) else from_dict(TrainConfig, config or {})
         self.name = name or cfg.mode
         self.notes = self.needs.check(scene, self.name)
-        self.trainer = Trainer(scene, cfg)
+        self.trainer = Trainer(scene, cfg, device=device)
+
+    @property
+    def device(self) -> torch.device:
+        return self.trainer.device
 
     @property
     def config(self) -> TrainConfig:
@@ -85,7 +89,8 @@ class GaussianSplatting:
         _atomic_write(path / MANIFEST, json.dumps(manifest, indent=1).encode())
 
     def load(self, path: str | Path) -> None:
-        state = torch.load(Path(path) / CHECKPOINT, map_location="cpu", weights_only=False)
+        """Restore a checkpoint written on any device onto this method's device."""
+        state = torch.load(Path(path) / CHECKPOINT, map_location=self.device, weights_only=False)
         if state.get("method") != self.name:
             raise ValueError(f"checkpoint {path} is of method {state.get('method')!r}, not {self.name!r}")
         self.trainer.load_state_dict(state["trainer"])

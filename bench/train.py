@@ -1,7 +1,7 @@
 """Seconds per training step for each method, split into render (forward), loss, backward,
 optimiser and strategy (densification statistics and refinement) shares.
 
-    python -m bench.train [--methods ...] [--steps 50] [--backend auto] [--fit4]
+    python -m bench.train [--methods ...] [--steps 50] [--backend auto] [--device auto] [--fit4]
 
 Scenes:
 * ``pattern256``: circle4 at 128², 256 Gaussians (a fixed 16×16 layout, no densification);
@@ -72,18 +72,24 @@ def _config(scene_name: str, method: str, backend: str) -> dict:
     return cfg
 
 
-def bench(scene: Scene, scene_name: str, method: str, steps: int, warmup: int, backend: str) -> dict:
+def bench(scene: Scene, scene_name: str, method: str, steps: int, warmup: int, backend: str,
+          device: torch.device) -> dict:
+    """Seconds per step; on a GPU the device is synchronised before and after the timed steps
+    (the per-stage shares are host-side times, so there they show launch cost, not GPU time)."""
     from baselines import create_method
+    from smgs.metrics.timing import synchronize
 
-    m = create_method(method, scene, _config(scene_name, method, backend))
+    m = create_method(method, scene, _config(scene_name, method, backend), device=device)
     for s in range(warmup):
         m.train_step(s)
     tr = m.trainer
     tr.timings = {k: 0.0 for k in tr.timings}
     tr.profile = True
+    synchronize(device)
     t0, c0 = time.perf_counter(), time.process_time()
     for s in range(warmup, warmup + steps):
         m.train_step(s)
+    synchronize(device)
     total, cpu = time.perf_counter() - t0, time.process_time() - c0
     shares = {k: v / total for k, v in tr.timings.items()}
     return {"scene": scene_name, "method": method, "gaussians": m.num_gaussians(),
@@ -91,15 +97,18 @@ def bench(scene: Scene, scene_name: str, method: str, steps: int, warmup: int, b
             **{f"{k}_share": round(v, 3) for k, v in shares.items()}}
 
 
-def fit4(method: str, backend: str, steps: int = 10_000) -> tuple[float, float]:
+def fit4(method: str, backend: str, device: torch.device, steps: int = 10_000) -> tuple[float, float]:
     """Wall and process CPU seconds of a full 4-Gaussian circle4 fit (set-up excluded)."""
     from baselines import create_method
     from smgs.data.patterns import pattern_scene
+    from smgs.metrics.timing import synchronize
 
-    m = create_method(method, pattern_scene("circle4", 128), _config("pattern4", method, backend))
+    m = create_method(method, pattern_scene("circle4", 128), _config("pattern4", method, backend), device=device)
+    synchronize(device)
     t0, c0 = time.perf_counter(), time.process_time()
     for s in range(steps):
         m.train_step(s)
+    synchronize(device)
     return time.perf_counter() - t0, time.process_time() - c0
 
 
@@ -118,13 +127,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--backend", default="auto")
+    ap.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--fit4", action="store_true", help="also time full 10K-step 4-Gaussian fits")
     ap.add_argument("--json", help="write the rows to this file")
     args = ap.parse_args(argv)
+    from smgs.device import DeviceError, check_backend, device_name, resolve_device
+
+    try:
+        device = resolve_device(args.device)
+        check_backend(args.backend, device)
+    except DeviceError as e:
+        ap.error(str(e))
     torch.set_num_threads(args.threads)
-    backend = resolve_backend(args.backend, "cpu", torch.float32)
-    print(f"backend {backend}, torch threads {torch.get_num_threads()}, {args.steps} timed steps "
+    backend = resolve_backend(args.backend, device, torch.float32)
+    print(f"device {device_name(device)}, backend {backend}, torch threads {torch.get_num_threads()}, {args.steps} timed steps "
           f"after {args.warmup} warm-up; {load()} (s/step is wall time, cpu the process CPU time: "
           f"on a shared machine compare cpu, and ratios within one run)")
     scenes = {"pattern4": pattern_scene("circle4", 128), "pattern256": pattern_scene("circle4", 128)}
@@ -136,8 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     print(hdr)
     for sn in args.scenes:
         for meth in args.methods:
-            r = bench(scenes[sn], sn, meth, args.steps, args.warmup, args.backend)
-            r["backend"] = backend
+            r = bench(scenes[sn], sn, meth, args.steps, args.warmup, args.backend, device)
+            r["backend"], r["device"] = backend, device_name(device)
             rows.append(r)
             print(f"{sn:11s} {meth:13s} {r['gaussians']:5d} {r['sec_per_step']:9.5f} {r['cpu_sec_per_step']:9.5f} "
                   f"{r['render_share']:7.1%} "
@@ -147,9 +164,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{'':11s} -> 10K-step 4-Gaussian fit ≈ {r['sec_per_step'] * 1e4:.1f} s (goal < 30 s)")
     if args.fit4:
         for meth in args.methods:
-            secs, cpu = fit4(meth, args.backend)
+            secs, cpu = fit4(meth, args.backend, device)
             rows.append({"scene": "fit4_10k", "method": meth, "seconds": secs, "cpu_seconds": cpu,
-                         "backend": backend})
+                         "backend": backend, "device": device_name(device)})
             print(f"10K-step 4-Gaussian circle4 fit, {meth}: {secs:.1f} s wall, {cpu:.1f} s cpu "
                   f"(goal < 30 s; {load()})", flush=True)
     print(load())

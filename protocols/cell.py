@@ -46,10 +46,27 @@ def _identity(cfg: dict) -> dict[str, Any]:
                 budget=cfg["budget"]["name"], seed=int(cfg["seed"]), preset=cfg["protocol"]["name"])
 
 
+def with_device(cfg: dict) -> dict:
+    """The cell's config with ``device`` resolved on this machine (``auto`` → ``cuda:0`` or
+    ``cpu``; ``cuda`` → ``cuda:<index>``), so the config hash, config.yaml and results.json name
+    the device the run used: a result of another device is not taken for this one. Raises
+    ``smgs.device.DeviceError`` (a device this machine lacks, a backend of the other kind)."""
+    from smgs.device import check_backend, resolve_device
+
+    dev = resolve_device(cfg.get("device"))
+    check_backend(str(cfg.get("backend", "auto")), dev)
+    return {**cfg, "device": str(dev)}
+
+
 def run_cell(payload: dict) -> dict:
     """payload: {"key", "run_dir", "config" (resolved dict)}. Returns a small summary."""
-    cfg: dict = payload["config"]
+    from smgs.device import DeviceError
+
     run_dir = Path(payload["run_dir"])
+    try:
+        cfg: dict = with_device(payload["config"])
+    except DeviceError as e:   # before anything is written: no half-made run directory
+        return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
     h = result_hash(cfg)
     res_path = run_dir / "results.json"
     if res_path.exists() and not cfg.get("force", False):
@@ -77,11 +94,20 @@ def run_cell(payload: dict) -> dict:
         skipped = isinstance(e, DatasetMissing)
         base.status = "skipped" if skipped else "failed"
         base.error = f"{type(e).__name__}: {e}"
-        base.versions = versions(cfg.get("backend", "auto"), "cpu")
+        base.versions = versions(cfg.get("backend", "auto"), _device_label(cfg["device"]))
         write_result(run_dir, base)
         return {"key": payload["key"], "status": base.status, "error": base.error}
     write_result(run_dir, result)
     return {"key": payload["key"], "status": "ok", "psnr": result.metrics.get("psnr")}
+
+
+def _device_label(device: str) -> str:
+    from smgs.device import device_name
+
+    try:
+        return device_name(device)
+    except Exception:   # naming must never hide the run's own error
+        return device
 
 
 def _yaml(cfg: dict) -> str:
@@ -98,9 +124,10 @@ def save_checkpoint(run_dir: Path, state: dict) -> None:
     atomic_write_bytes(run_dir / CHECKPOINT, buf.getvalue())
 
 
-def load_checkpoint(run_dir: Path) -> dict | None:
+def load_checkpoint(run_dir: Path, device: torch.device | str) -> dict | None:
+    """The state saved by ``save_checkpoint``, its tensors on ``device`` whatever device wrote it."""
     p = run_dir / CHECKPOINT
     if not p.exists():
         return None
-    return torch.load(p, map_location="cpu", weights_only=False)
+    return torch.load(p, map_location=torch.device(device), weights_only=False)
 

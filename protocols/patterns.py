@@ -34,7 +34,6 @@ import argparse
 import csv
 import json
 import statistics
-import time
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +42,7 @@ import torch
 METHOD_ORDER = ("softmax_gs", "gef_only", "softmax_only", "3dgs")
 CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "status", "psnr", "psnr_8bit",
                "final_gaussians", "train_seconds", "ms_per_step", "paper_psnr", "delta_vs_paper", "backend",
-               "hparams", "overrides", "error"]
+               "device", "hparams", "overrides", "error"]
 
 
 def paper_table1() -> dict[tuple[str, str, int], float]:
@@ -81,35 +80,41 @@ def apply_overrides(cfg: dict, overrides: list[str]) -> dict:
 
 def run_cell(pattern: str, method: str, count: int, seed: int, steps: int, size: int,
              backend: str = "auto", overrides: list[str] | None = None,
-             render_dir: Path | None = None) -> dict[str, Any]:
-    """Train one cell and return its CSV row (status "failed" with the error on an exception)."""
+             render_dir: Path | None = None, *, device: torch.device) -> dict[str, Any]:
+    """Train one cell on ``device`` and return its CSV row (status "failed" with the error on an
+    exception)."""
     from baselines import create_method
     from smgs.data.patterns import pattern_scene
+    from smgs.device import device_name
     from smgs.metrics.image import psnr, quantize_8bit, to_uint8
+    from smgs.metrics.timing import TrainClock
     from smgs.raster import resolve_backend
     from smgs.train import pattern_config, to_dict
 
     paper = paper_table1().get((pattern, method, count))
     row: dict[str, Any] = dict(pattern=pattern, method=method, n_gaussians=count, seed=seed, steps=steps,
                                size=size, paper_psnr=paper, overrides=" ".join(overrides or []),
-                               backend=resolve_backend(backend, "cpu", torch.float32))
+                               backend=resolve_backend(backend, device, torch.float32),
+                               device=device_name(device))
     try:
         torch.manual_seed(seed)
         scene = pattern_scene(pattern, size)
         cfg = to_dict(pattern_config(method, cap=count, steps=steps, seed=seed))
         cfg["backend"] = backend
         cfg = apply_overrides(cfg, overrides or [])
-        m = create_method(method, scene, cfg)
+        m = create_method(method, scene, cfg, device=device)
         row["hparams"] = m.describe()["hparams"]
-        t0 = time.perf_counter()
-        for s in range(steps):
-            m.train_step(s)
-        secs = time.perf_counter() - t0
+        clock = TrainClock(device)     # synchronises a GPU, so queued steps are counted
+        with clock.training():
+            for s in range(steps):
+                m.train_step(s)
+        secs = clock.seconds
         view = scene.test[0]
         out = m.render(view.camera)
         rgb = out.rgb.clamp(0, 1)
-        p = psnr(rgb, view.rgb)
-        row.update(status="ok", psnr=round(p, 3), psnr_8bit=round(psnr(quantize_8bit(rgb), view.rgb), 3),
+        target = view.rgb.to(device)
+        p = psnr(rgb, target)
+        row.update(status="ok", psnr=round(p, 3), psnr_8bit=round(psnr(quantize_8bit(rgb), target), 3),
                    final_gaussians=m.num_gaussians(), train_seconds=round(secs, 2),
                    ms_per_step=round(1e3 * secs / max(steps, 1), 3),
                    delta_vs_paper=None if paper is None else round(p - paper, 3), error="")
@@ -117,7 +122,7 @@ def run_cell(pattern: str, method: str, count: int, seed: int, steps: int, size:
             from PIL import Image
 
             render_dir.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(to_uint8(rgb).numpy()).save(render_dir / f"{pattern}_{method}_n{count}_s{seed}.png")
+            Image.fromarray(to_uint8(rgb).cpu().numpy()).save(render_dir / f"{pattern}_{method}_n{count}_s{seed}.png")
     except Exception as e:  # a failed cell is recorded, the grid goes on
         row.update(status="failed", error=f"{type(e).__name__}: {e}")
     return row
@@ -276,7 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--steps", type=int, default=10_000)
     ap.add_argument("--size", type=int, default=128, help="target width = height in pixels")
-    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--backend", default="auto", help="renderer backend: auto | cpu | cuda | reference")
+    ap.add_argument("--device", default="auto", help="auto (CUDA where torch sees it, else the CPU) | cpu | cuda "
+                    "| cuda:N")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--out", required=True)
@@ -299,6 +306,13 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [m for m in args.methods if m not in list_methods()]
     if unknown:
         ap.error(f"unknown method(s) {unknown}; registered: {', '.join(list_methods())}")
+    from smgs.device import DeviceError, check_backend, resolve_device
+
+    try:                       # before anything is written
+        device = resolve_device(args.device)
+        check_backend(args.backend, device)
+    except DeviceError as e:
+        ap.error(str(e))
     torch.set_num_threads(args.threads)
     out.mkdir(parents=True, exist_ok=True)
     if args.write_targets:
@@ -315,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(todo)} cell(s) to run, {len(done)} already done -> {cells_path}", flush=True)
     for i, (p, m, n, s) in enumerate(todo):
         row = run_cell(p, m, n, s, args.steps, args.size, args.backend, args.overrides,
-                       None if args.no_renders else out / "renders")
+                       None if args.no_renders else out / "renders", device=device)
         _append(cells_path, row)
         extra = (f"psnr {row['psnr']:.2f} (paper {row['paper_psnr']}) {row['train_seconds']:.0f} s"
                  if row["status"] == "ok" else row["error"])

@@ -58,6 +58,7 @@ class RunResult:
     per_view: dict[str, list] = field(default_factory=dict)
     num_gaussians: int | None = None
     train_seconds: float | None = None
+    build_seconds: float | None = None   # building/loading the compiled kernels, never in train_seconds
     render_fps: float | None = None
     render_device: str | None = None
     peak_memory_mb: float | None = None

@@ -86,11 +86,37 @@ def _preflight(payloads: list[dict]) -> None:
         raise SystemExit("missing data (set on_missing=skip to run what exists):\n  " + "\n  ".join(problems))
 
 
+REMOTE_EXECUTORS = ("slurm",)
+
+
+def check_devices(payloads: list[dict], executor: str) -> None:
+    """Every cell's device and renderer backend, before anything runs or is written: a device this
+    machine cannot provide (``device=cuda`` without CUDA, ``cuda:3`` with fewer GPUs), an unknown
+    name, or a backend bound to the other kind of device stops the experiment with the fix. Cells
+    that run on other machines (SLURM) are checked for spelling and backend here and for the
+    hardware on their node."""
+    from smgs.device import DeviceError, check_backend, parse_device, resolve_device
+
+    problems = []
+    for p in payloads:
+        c = p["config"]
+        try:
+            dev = parse_device(c.get("device")) if executor in REMOTE_EXECUTORS else resolve_device(c.get("device"))
+            if dev is not None:
+                check_backend(str(c.get("backend", "auto")), dev)
+        except DeviceError as e:
+            if str(e) not in problems:
+                problems.append(str(e))
+    if problems:
+        raise SystemExit("device: " + "\n  ".join(problems))
+
+
 def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.cell import run_cell
     from protocols.executors import execute
 
     cells, payloads = plan(cfg, overrides)
+    check_devices(payloads, str(cfg.executor.kind))
     _preflight(payloads)
     ex = cfg.executor
     print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)

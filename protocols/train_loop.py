@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -97,36 +98,53 @@ def _load_checkpoint(run_dir: Path, method) -> dict | None:
     return json.loads((d / "progress.json").read_text())
 
 
+def _prepare_kernels(mc: dict, device: torch.device, log: logging.Logger) -> float:
+    from smgs.raster import constants as K
+    from smgs.train.kernels import prepare_kernels
+
+    t0 = time.perf_counter()
+    backend = prepare_kernels(mc.get("backend", "auto"), device, torch.float32, float(mc.get("t_min", K.T_MIN)))
+    seconds = time.perf_counter() - t0
+    log.info("compiled kernels ready in %.1f s (renderer backend %s; not counted as training time)",
+             seconds, backend)
+    return seconds
+
+
 def _render_rgb(method, camera) -> torch.Tensor:
     return method.render(camera).rgb.clamp(0, 1)
 
 
-def quick_psnr(method, views, quantize: bool = True) -> float:
-    """Mean PSNR of the test views (the intermediate evaluations), on 8-bit renders by default."""
+def quick_psnr(method, views, targets: list[torch.Tensor], quantize: bool = True) -> float:
+    """Mean PSNR of the test views against their ``targets`` (on the run's device; the
+    intermediate evaluations), on 8-bit renders by default."""
     q = quantize_8bit if quantize else (lambda x: x)
     with torch.no_grad():
-        return float(np.mean([psnr(q(_render_rgb(method, v.camera)), q(v.rgb)) for v in views]))
+        return float(np.mean([psnr(q(_render_rgb(method, v.camera)), q(t)) for v, t in zip(views, targets)]))
 
 
 def _save_png(path: Path, img: torch.Tensor) -> None:
     import io
 
     buf = io.BytesIO()
-    Image.fromarray((img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
+    Image.fromarray((img.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
     atomic_write_bytes(path, buf.getvalue())
 
 
 def _quantiles(t: torch.Tensor) -> dict[str, float]:
     t = t.detach().float().flatten()
-    q = torch.quantile(t, torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]))
+    q = torch.quantile(t, t.new_tensor([0.05, 0.25, 0.5, 0.75, 0.95]))
     return dict(zip(("p05", "p25", "p50", "p75", "p95"), map(float, q))) | {"mean": float(t.mean())}
 
 
 def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging.Logger) -> RunResult:
+    """``cfg["device"]`` is the resolved device (``protocols.cell.with_device``)."""
+    device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
     name = cfg["method"]["name"]
-    method = create_method(name, scene, method_config(cfg))
+    method = create_method(name, scene, method_config(cfg), device=device)
+    log.info("device: %s", device_name(device))
+    test_rgb = [v.rgb.to(device) for v in scene.test]
     desc = method.describe()
     result.hparams = str(desc.get("hparams", ""))
     steps = int(desc["config"]["steps"]) if "config" in desc and "steps" in desc["config"] else \
@@ -140,7 +158,11 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     for line in left_out:
         log.info("plan: %s", line)
 
-    clock = TrainClock("cpu")
+    # Compiled kernels are built (or loaded) before the train clock starts: a build is never a
+    # method's training time; its seconds are recorded apart.
+    result.build_seconds = _prepare_kernels(desc.get("config") or method_config(cfg), device, log)
+
+    clock = TrainClock(device)
     progress = _load_checkpoint(run_dir, method) or {"step": 0, "train_seconds": 0.0, "curve": []}
     start = int(progress["step"])
     clock.seconds = float(progress["train_seconds"])
@@ -151,14 +173,14 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     every = int(cfg.get("checkpoint_every") or 0)
     bar = tqdm(total=steps, initial=start, desc=f"{cfg['scene']}/{name}", unit="step", leave=False,
                position=1, dynamic_ncols=True)
-    with track_peak_memory("cpu") as peak:
+    with track_peak_memory(device) as peak:
         for step in range(start, steps):
             with clock.training():
                 logs = method.train_step(step)
             done = step + 1
             if done in checks:
                 with clock.exclude("eval"):
-                    last_psnr = quick_psnr(method, scene.test, bool(ev.get("quantize", True)))
+                    last_psnr = quick_psnr(method, scene.test, test_rgb, bool(ev.get("quantize", True)))
                 curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
                 log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
                          method.num_gaussians())
@@ -184,10 +206,10 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     # final evaluation on the test views, on 8-bit renders
     renders, gts, names, within = [], [], [], []
     with torch.no_grad():
-        for v in scene.test:
+        for v, gt in zip(scene.test, test_rgb):
             out = method.render(v.camera)
             renders.append(out.rgb.clamp(0, 1))
-            gts.append(v.rgb)
+            gts.append(gt)
             names.append(v.name)
             within.append(out.stats.frac_within_kmax)
     if ev.get("save_renders", True):
@@ -195,7 +217,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
     m = evaluate_images(renders, gts, names, lpips_net=ev.get("lpips_net", "vgg"),
                         lpips_weights=ev.get("lpips_weights"), lpips_input=ev.get("lpips_input", "3dgs"), flip=bool(ev.get("flip", True)),
-                        quantize=bool(ev.get("quantize", True)))
+                        quantize=bool(ev.get("quantize", True)), device=device)
     means = m.means()
     result.metrics = {"psnr": means["psnr"], "ssim": means["ssim"]}
     result.per_view = {"name": names, "psnr": m.psnr, "ssim": m.ssim}
@@ -207,14 +229,15 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             result.per_view[key] = values
     result.lpips_net = m.lpips_name
     fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
-                             warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)))
+                             warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)),
+                             device=device)
     result.render_fps = fps.fps
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
     backend = cfg.get("backend", "auto")
     from smgs.raster import resolve_backend
 
-    result.versions = versions(resolve_backend(backend, "cpu", torch.float32), device_name("cpu"))
+    result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "left_out": left_out,
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0)}

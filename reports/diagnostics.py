@@ -74,7 +74,7 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
         rs = cells[key]
         vals = [_coverage(r) for r in rs]
         v = Value(sum(vals) / len(vals), None, len(vals))
-        label, lnotes = ctx.label((m, b, p))
+        label, lnotes = ctx.label((m, b, p), rs)
         if ds == "mipnerf360" and scene in KMAX_COVERAGE:
             kind = "indoor" if KMAX_COVERAGE[scene] > 0.8 else "outdoor"
             paper = Value.of(KMAX_COVERAGE[scene])

@@ -19,6 +19,9 @@ from reports.runs import (Value, aggregate, consistency_getter, field_getter, fl
 from reports.table import Column, Row, Section, Table, count, fixed
 
 RowKey = tuple[str, str, str]  # (method, budget, preset)
+REFERENCE_NOTE = ("[reference renderer] = rendered with the PyTorch reference backend (results.json versions), "
+                  "100–1000× slower than the compiled ones: its quality is the method's, its times and FPS are "
+                  "not")
 
 PSNR = metric("psnr")
 SSIM = metric("ssim")
@@ -53,12 +56,18 @@ class Context:
             return Value.absent(self.paper.error)
         return Value.of(x, f"not in the paper's {where}")
 
-    def label(self, key: RowKey) -> tuple[str, list[str]]:
+    def label(self, key: RowKey, runs: Iterable[RunResult] = ()) -> tuple[str, list[str]]:
+        """The row's label and its footnotes: [preset] for a reduced preset, [reference renderer]
+        when any of its ``runs`` rendered with the PyTorch reference backend."""
         method, budget, preset = key
-        text = row_label(method, budget)
+        text, notes = row_label(method, budget), []
         if preset != "paper":
-            return f"{text} [{preset}]", [self.presets.get(preset, f"[{preset}] = a reduced preset")]
-        return text, []
+            text += f" [{preset}]"
+            notes.append(self.presets.get(preset, f"[{preset}] = a reduced preset"))
+        if any(r.versions.get("backend") == "reference" for r in runs):
+            text += " [reference renderer]"
+            notes.append(REFERENCE_NOTE)
+        return text, notes
 
 
 def row_order(key: RowKey) -> tuple:
@@ -275,7 +284,7 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
         dm = dataset_means(ds, real, T2_GETTERS)
         rows = []
         for k, vals in dm.values.items():
-            label, notes = ctx.label(k)
+            label, notes = ctx.label(k, [r for r in dm.runs if (r.method, r.budget, r.preset) == k])
             if k in dm.subset_note:
                 notes.append(dm.subset_note[k])
             method, budget, preset = k
@@ -318,7 +327,7 @@ def _scene_rows(real: list[RunResult], getters: dict, columns: list[Column], ctx
     out = []
     for (ds, scene, m, b, p), rs in sorted(cell.items(), key=lambda kv: (dataset_rank(kv[0][0]), scene_rank(
             kv[0][0], kv[0][1]), row_order(kv[0][2:]))):
-        label, notes = ctx.label((m, b, p))
+        label, notes = ctx.label((m, b, p), rs)
         row = Row([scene, label], {c.key: aggregate(rs, getters[c.key]) for c in columns},
                   rank_group=(scene, budget_group(b), p, *rank_extra(rs)), label_notes=notes,
                   info=info(rs), csv=_csv_id((m, b, p), dataset=ds, scene=scene))

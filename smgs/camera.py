@@ -21,8 +21,11 @@ class Camera:
     height: int
 
     def __post_init__(self) -> None:
-        self.K = torch.as_tensor(self.K)
-        self.viewmat = torch.as_tensor(self.viewmat)
+        # tensors stay where they are (as_tensor would move them to torch's default device)
+        if not isinstance(self.K, torch.Tensor):
+            self.K = torch.as_tensor(self.K)
+        if not isinstance(self.viewmat, torch.Tensor):
+            self.viewmat = torch.as_tensor(self.viewmat)
         if self.K.shape != (3, 3):
             raise ValueError(f"Camera.K must be [3,3], got {tuple(self.K.shape)}")
         if self.viewmat.shape != (4, 4):

@@ -19,20 +19,20 @@ PLUGIN = textwrap.dedent('''
         """A toy method: one trainable colour for the whole image."""
         needs = SceneNeeds()
 
-        def __init__(self, scene, config=None, *, name=None):
-            self.scene, self.config = scene, dict(config or {})
-            self.colour = torch.zeros(3, requires_grad=True)
+        def __init__(self, scene, config=None, *, name=None, device):
+            self.scene, self.config, self.device = scene, dict(config or {}), device
+            self.colour = torch.zeros(3, device=device, requires_grad=True)
             self.opt = torch.optim.Adam([self.colour], lr=float(self.config.get("lr", 0.1)))
 
         def train_step(self, step):
             v = self.scene.train[0]
-            loss = ((self.colour - v.rgb) ** 2).mean()
+            loss = ((self.colour - v.rgb.to(self.device)) ** 2).mean()
             self.opt.zero_grad(); loss.backward(); self.opt.step()
             return {"loss": float(loss.detach())}
 
         def render(self, camera):
             rgb = self.colour.detach().expand(camera.height, camera.width, 3)
-            z = torch.zeros(camera.height, camera.width)
+            z = torch.zeros(camera.height, camera.width, device=self.device)
             return RenderOutput(rgb, z + 1, z, RenderStats(z.long(), 0, 0))
 
         def num_gaussians(self):
@@ -100,7 +100,7 @@ def test_register_in_process():
     register(spec)
     try:
         assert "softmax_gs_k8" in list_methods()
-        m = create_method("softmax_gs_k8", pattern_scene("circle4", 8), {"steps": 2})
+        m = create_method("softmax_gs_k8", pattern_scene("circle4", 8), {"steps": 2}, device="cpu")
         assert m.config.k_max == 8 and isinstance(m, Method)
         with pytest.raises(ValueError, match="already registered"):
             register(spec)
@@ -112,14 +112,31 @@ def test_entry_point_plugin_is_listed_lazily_and_created(plugin):
     assert plugin in list_methods()
     assert "smgs_toy_plugin" not in sys.modules          # listing does not import the plugin
     scene = pattern_scene("rect4", 8)
-    m = create_method(plugin, scene, {"lr": 0.2})
+    m = create_method(plugin, scene, {"lr": 0.2}, device="cpu")
     assert "smgs_toy_plugin" in sys.modules
-    assert isinstance(m, Method)
+    assert isinstance(m, Method) and m.device == torch.device("cpu")   # the constructor got a torch.device
     for s in range(30):
         m.train_step(s)
     out = m.render(scene.test[0].camera)
     torch.testing.assert_close(out.rgb[0, 0], scene.train[0].rgb.mean((0, 1)), atol=0.05, rtol=0)
     assert get_spec(plugin).source.startswith("plugin smgs-toy-plugin")
+
+
+def test_a_method_without_a_device_argument_is_refused_by_name():
+    class OldStyle:
+        needs = SceneNeeds()
+
+        def __init__(self, scene, config=None, *, name=None):
+            raise AssertionError("must not be constructed")
+
+        train_step = render = num_gaussians = save = load = describe = lambda self, *a: None
+
+    register(MethodSpec("old_style", OldStyle))
+    try:
+        with pytest.raises(TypeError, match=r"'old_style'.*takes no `device` argument.*Adding a method"):
+            create_method("old_style", pattern_scene("circle4", 8), {}, device="cpu")
+    finally:
+        unregister("old_style")
 
 
 def test_plugin_cannot_shadow_a_builtin(tmp_path, monkeypatch):

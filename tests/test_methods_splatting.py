@@ -10,6 +10,7 @@ from smgs.data.patterns import pattern_scene
 from smgs.train import NonFiniteError, pattern_config, to_dict
 from smgs.train.gaussians import PARAM_NAMES
 
+CPU = torch.device("cpu")   # these tests run on the CPU explicitly (tests/test_device.py checks the plumbing)
 METHODS = ("3dgs", "gef_only", "softmax_only", "softmax_gs")
 
 
@@ -25,7 +26,7 @@ def _config(method, steps=40, cap=4, **optim):
 @pytest.mark.parametrize("method", METHODS)
 def test_few_step_fit_decreases_loss(method):
     scene = pattern_scene("circle4", 16)
-    m = create_method(method, scene, _config(method, alpha_lr=1e-2, beta_lr=1e-2, gamma_lr=1e-2))
+    m = create_method(method, scene, _config(method, alpha_lr=1e-2, beta_lr=1e-2, gamma_lr=1e-2), device=CPU)
     raw0 = {k: v.detach().clone() for k, v in m.trainer.gaussians.params.items()}
     losses = [m.train_step(s)["loss"] for s in range(40)]
     assert sum(losses[-5:]) / 5 < 0.95 * sum(losses[:5]) / 5
@@ -46,7 +47,7 @@ def test_densification_grows_to_the_cap():
     scene = pattern_scene("rect4", 16)
     cfg = _config("softmax_gs", steps=30, cap=9)
     cfg["densify"].update(refine_start=2, refine_every=5, grow_grad2d=1e-6)
-    m = create_method("softmax_gs", scene, cfg)
+    m = create_method("softmax_gs", scene, cfg, device=CPU)
     counts = [m.train_step(s)["num_gaussians"] for s in range(30)]
     assert counts[0] == 4 and max(counts) == 9
 
@@ -60,16 +61,16 @@ def _resume_config():
 
 def test_save_load_resume_is_exact(tmp_path):
     scene = pattern_scene("oval4", 12)
-    a = create_method("softmax_gs", scene, _resume_config())
+    a = create_method("softmax_gs", scene, _resume_config(), device=CPU)
     for s in range(12):
         a.train_step(s)
-    b = create_method("softmax_gs", scene, _resume_config())
+    b = create_method("softmax_gs", scene, _resume_config(), device=CPU)
     for s in range(5):
         b.train_step(s)
     b.save(tmp_path / "ck")
     manifest = json.loads((tmp_path / "ck" / "checkpoint.json").read_text())
     assert manifest["step"] == 5 and manifest["hparams"] == "3dgs2023+softmaxgs_patterns"
-    c = create_method("softmax_gs", scene, _resume_config())
+    c = create_method("softmax_gs", scene, _resume_config(), device=CPU)
     c.load(tmp_path / "ck")
     with pytest.raises(ValueError, match="steps are done"):
         c.train_step(0)
@@ -82,12 +83,12 @@ def test_save_load_resume_is_exact(tmp_path):
     for name in sa:
         assert torch.equal(sa[name]["exp_avg_sq"], sc[name]["exp_avg_sq"]), name
     with pytest.raises(ValueError, match="method"):
-        create_method("3dgs", scene, _config("3dgs")).load(tmp_path / "ck")
+        create_method("3dgs", scene, _config("3dgs"), device=CPU).load(tmp_path / "ck")
 
 
 def test_non_finite_parameter_names_group_and_step():
     scene = pattern_scene("circle4", 12)
-    m = create_method("softmax_gs", scene, _config("softmax_gs"))
+    m = create_method("softmax_gs", scene, _config("softmax_gs"), device=CPU)
     m.train_step(0)
     with torch.no_grad():
         m.trainer.gaussians.params["beta"][1] = float("nan")
@@ -98,7 +99,7 @@ def test_non_finite_parameter_names_group_and_step():
 
 def test_non_finite_gradient_is_caught_after_the_step():
     scene = pattern_scene("circle4", 12)
-    m = create_method("3dgs", scene, _config("3dgs"))
+    m = create_method("3dgs", scene, _config("3dgs"), device=CPU)
     m.trainer.gaussians.params["scales"].register_hook(lambda g: torch.full_like(g, float("inf")))
     with pytest.raises(NonFiniteError, match=r"'scales' at step 0"):
         m.train_step(0)

@@ -17,13 +17,13 @@ def test_fps_median_warmup_and_device():
         calls.append(cam)
         time.sleep(0.03 if len(calls) <= 2 else 0.004)  # slow first calls are the warm-up
 
-    res = measure_render_fps(render, ["a", "b"], warmup=2, repeats=3)
+    res = measure_render_fps(render, ["a", "b"], warmup=2, repeats=3, device="cpu")
     assert len(calls) == 2 + 3 * 2
     assert 0.004 <= res.median_seconds_per_view < 0.02
     assert res.fps == pytest.approx(1 / res.median_seconds_per_view)
-    assert res.device.startswith("cpu:") and res.n_views == 2 and len(res.seconds_per_view) == 3
+    assert res.device.startswith("cpu ") and res.n_views == 2 and len(res.seconds_per_view) == 3
     with pytest.raises(ValueError):
-        measure_render_fps(render, [])
+        measure_render_fps(render, [], device="cpu")
 
 
 def test_peak_memory_sees_a_large_allocation():
@@ -40,7 +40,7 @@ def test_peak_memory_sees_a_large_allocation():
 
 
 def test_train_clock_excludes_evaluation():
-    clock = TrainClock()
+    clock = TrainClock("cpu")
     with clock.training():
         time.sleep(0.02)
     with clock.exclude("eval"):
@@ -50,3 +50,30 @@ def test_train_clock_excludes_evaluation():
     assert 0.04 <= clock.seconds < 0.07
     assert clock.excluded["eval"] >= 0.05
     assert clock.to_json()["device"] == device_name("cpu")
+
+
+def test_cuda_timing_synchronises_and_peak_memory_is_max_memory_allocated(monkeypatch):
+    """On a CUDA device the clock and the FPS probe synchronise that device around each timed block
+    (queued kernels are charged to the block), and peak memory is torch.cuda.max_memory_allocated
+    after a reset; checked here with torch.cuda's calls recorded instead of a GPU."""
+    import torch
+
+    calls = []
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda d=None: calls.append(("sync", str(d))))
+    monkeypatch.setattr(torch.cuda, "reset_peak_memory_stats", lambda d=None: calls.append(("reset", str(d))))
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda d=None: calls.append(("max", str(d))) or 123)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda d=None: "NVIDIA H200")
+    clock = TrainClock("cuda:1")
+    with clock.training():
+        calls.append("work")
+    assert calls == [("sync", "cuda:1"), "work", ("sync", "cuda:1")]
+    calls.clear()
+    with track_peak_memory("cuda:1") as pm:
+        calls.append("work")
+    assert calls == [("sync", "cuda:1"), ("reset", "cuda:1"), "work", ("sync", "cuda:1"), ("max", "cuda:1")]
+    assert (pm.bytes, pm.kind, pm.device) == (123, "cuda_max_memory_allocated", "cuda:1 NVIDIA H200")
+    calls.clear()
+    res = measure_render_fps(lambda c: calls.append("render"), ["a"], warmup=1, repeats=1, device="cuda:1")
+    assert calls == ["render", ("sync", "cuda:1"), "render", ("sync", "cuda:1")]
+    assert res.device == "cuda:1 NVIDIA H200"

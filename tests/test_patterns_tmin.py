@@ -113,7 +113,7 @@ def test_training_config_reaches_the_renderer():
         cfg = to_dict(pattern_config("gef_only", cap=4, steps=1))   # vanilla steps: the stop applies
         cfg.update(backend="reference", t_min=t_min)
         cfg["gaussians"].update(flat_spacing=0.05, flat_scale=0.1)   # overlapping splats
-        tr = Trainer(scene, from_dict(type(pattern_config("3dgs", 4)), cfg))
+        tr = Trainer(scene, from_dict(type(pattern_config("3dgs", 4)), cfg), device="cpu")
         tr.gaussians.params["sh0"].data.normal_(generator=torch.Generator().manual_seed(0))
         with torch.no_grad():
             renders.append(tr.render(scene.train[0].camera))

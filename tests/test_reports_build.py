@@ -141,6 +141,17 @@ def test_tables_3_4_5(report):
     assert MISSING_DATA.split(":")[0] in footnote(t5, skipped, 2)
 
 
+def test_a_run_on_the_reference_renderer_is_marked_in_its_rows(report):
+    md = report[1]
+    for title in ("Table 2", "Table 3", "Table 5"):
+        sec = section(md, title)
+        line = row(sec, "3D GS 5% [cpu] [reference renderer]")
+        label = [c.strip() for c in line.strip("|").split("|")][1]
+        note = next(ln for ln in sec[sec.index(line):].splitlines() if "[reference renderer] =" in ln)
+        assert label.endswith(note.split(" ")[0]) and "100–1000× slower" in note, (label, note)
+        assert "[reference renderer]" not in row(sec, "Softmax-GS 5% [cpu]")
+
+
 def test_failures_listed_and_no_zero_for_missing(report):
     md = report[1]
     probs = section(md, "Runs that did not finish")

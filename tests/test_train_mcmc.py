@@ -82,7 +82,7 @@ def _gaussians(opacities: list[float]) -> tuple[Gaussians, GaussianOptimizer]:
     n = len(opacities)
     gen = torch.Generator().manual_seed(3)
     g = Gaussians.from_points(torch.randn(n, 3, generator=gen), torch.rand(n, 3, generator=gen), GaussianConfig(),
-                              1.0, 0, scales=torch.full((n, 3), 0.1))
+                              1.0, 0, scales=torch.full((n, 3), 0.1), device="cpu")
     with torch.no_grad():
         g.params["opacities"].copy_(torch.logit(torch.tensor(opacities)))
     opt = GaussianOptimizer(g, TrainConfig().optim, 1.0, 100)
@@ -90,7 +90,7 @@ def _gaussians(opacities: list[float]) -> tuple[Gaussians, GaussianOptimizer]:
 
 
 def _mcmc(**over) -> MCMCStrategy:
-    return MCMCStrategy(densify_config("mcmc", **{"cap": 100, "refine_start": 0, "refine_every": 1, **over}))
+    return MCMCStrategy(densify_config("mcmc", **{"cap": 100, "refine_start": 0, "refine_every": 1, **over}), device="cpu")
 
 
 def test_relocation_moves_dead_onto_live_and_resets_their_adam_moments():
@@ -161,7 +161,7 @@ def test_noise_is_the_covariance_times_a_normal_sample():
 def _trainer(cap: int = 12, steps: int = 60, mode: str = "3dgs") -> Trainer:
     cfg = to_dict(pattern_config(mode, cap=cap, steps=steps))
     cfg["densify"] = {"budget": "mcmc", "cap": cap, "refine_start": 2, "refine_every": 3, "refine_stop": steps}
-    return Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg))
+    return Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg), device="cpu")
 
 
 def test_count_never_exceeds_the_cap():
@@ -172,7 +172,7 @@ def test_count_never_exceeds_the_cap():
     # more initial Gaussians than the cap: a random subset of cap of them is kept
     cfg = to_dict(pattern_config("3dgs", cap=3, steps=10))
     cfg["densify"] = {"budget": "mcmc", "cap": 3}
-    tr = Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg))
+    tr = Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg), device="cpu")
     assert len(tr.gaussians) == 3 and any("above the cap 3" in p for p in tr.plan)
 
 
@@ -182,7 +182,7 @@ def test_loss_has_the_l1_regularisers():
     c = tr.cfg.densify
     expected = c.mcmc_opacity_reg * g.opacities.mean() + c.mcmc_scale_reg * g.scales.mean()
     torch.testing.assert_close(tr.strategy.regularizer(1, g), expected)
-    off = MCMCStrategy(densify_config("mcmc", cap=4, mcmc_opacity_reg=0.0, mcmc_scale_reg=0.0))
+    off = MCMCStrategy(densify_config("mcmc", cap=4, mcmc_opacity_reg=0.0, mcmc_scale_reg=0.0), device="cpu")
     assert off.regularizer(1, g) is None
 
 
@@ -217,7 +217,7 @@ def test_resume_mid_run_matches_an_uninterrupted_run():
 
 def test_checkpoint_of_another_strategy_is_refused():
     tr = _trainer()
-    default = DefaultStrategy(densify_config("full"), 1.0, 0.1)
+    default = DefaultStrategy(densify_config("full"), 1.0, 0.1, device="cpu")
     with pytest.raises(ValueError, match="'default'.*this run uses 'mcmc'"):
         tr.strategy.load_state_dict(default.state_dict())
     with pytest.raises(ValueError, match="'mcmc'.*this run uses 'default'"):
@@ -227,8 +227,8 @@ def test_checkpoint_of_another_strategy_is_refused():
 # -- configs ---------------------------------------------------------------------------------
 
 def test_configs_pick_the_strategy():
-    assert isinstance(make_strategy(densify_config("full"), 1.0, 0.1), DefaultStrategy)
-    st = make_strategy(densify_config("mcmc", cap=50), 1.0, 0.1)
+    assert isinstance(make_strategy(densify_config("full"), 1.0, 0.1, device="cpu"), DefaultStrategy)
+    st = make_strategy(densify_config("mcmc", cap=50), 1.0, 0.1, device="cpu")
     assert isinstance(st, MCMCStrategy) and st.cfg.reset_every is None and st.cfg.refine_stop == 25_000
     with pytest.raises(ValueError, match="budget 'mcmc' needs cap"):
         densify_config("mcmc")

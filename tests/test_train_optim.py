@@ -11,7 +11,7 @@ from smgs.train.trainer import trainable_groups
 
 
 def _setup(n=4, extent=3.0, steps=1000, names=PARAM_NAMES, hp="3dgs2023+softmaxgs_real"):
-    g = Gaussians.from_points(torch.randn(n, 3), torch.rand(n, 3), GaussianConfig(), extent, sh_degree=1)
+    g = Gaussians.from_points(torch.randn(n, 3), torch.rand(n, 3), GaussianConfig(), extent, sh_degree=1, device="cpu")
     return g, GaussianOptimizer(g, hparams(hp), extent, steps, names)
 
 

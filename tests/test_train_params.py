@@ -12,7 +12,7 @@ from smgs.train.gaussians import Gaussians, flat_layout, knn_scale
 
 def _gaussians(cfg=None, extent=4.0, n=5):
     pts = torch.randn(n, 3)
-    return Gaussians.from_points(pts, torch.rand(n, 3), cfg or GaussianConfig(), extent, sh_degree=3)
+    return Gaussians.from_points(pts, torch.rand(n, 3), cfg or GaussianConfig(), extent, sh_degree=3, device="cpu")
 
 
 def test_default_activations_and_initial_values():
@@ -44,7 +44,7 @@ def test_softplus_activation_and_colour_init():
     torch.testing.assert_close(g.alpha, torch.full((5,), 2.5))
     torch.testing.assert_close(g.beta, torch.full((5,), 0.3))
     cols = torch.tensor([[0.0, 0.5, 1.0]])
-    g = Gaussians.from_points(torch.zeros(1, 3), cols, GaussianConfig(), 1.0, sh_degree=0)
+    g = Gaussians.from_points(torch.zeros(1, 3), cols, GaussianConfig(), 1.0, sh_degree=0, device="cpu")
     from smgs.raster.sh import SH_C0
     torch.testing.assert_close(SH_C0 * g.params["sh0"][:, 0] + 0.5, cols)
     with pytest.raises(ValueError, match="must be > 0"):

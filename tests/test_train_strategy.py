@@ -14,12 +14,12 @@ def _case(scales, opacities, grads, cap=None, size_prune=SIZE_PRUNE_3DGS, **kw):
     n = len(scales)
     pts = torch.arange(n, dtype=torch.float32)[:, None] * torch.tensor([[1.0, 0.0, 0.0]])
     g = Gaussians.from_points(pts, torch.rand(n, 3), GaussianConfig(), EXTENT, sh_degree=0,
-                              scales=torch.tensor(scales, dtype=torch.float32)[:, None].expand(n, 3))
+                              scales=torch.tensor(scales, dtype=torch.float32)[:, None].expand(n, 3), device="cpu")
     with torch.no_grad():
         g.params["opacities"].copy_(inverse_sigmoid(torch.tensor(opacities)))
     opt = GaussianOptimizer(g, hparams("3dgs2023+softmaxgs_real"), EXTENT, 100)
     cfg = densify_config("cap" if cap else "full", cap=cap, **kw)
-    st = DefaultStrategy(cfg, EXTENT, size_prune, seed=0)
+    st = DefaultStrategy(cfg, EXTENT, size_prune, seed=0, device="cpu")
     st._ensure(n)
     st.grad2d = torch.tensor(grads, dtype=torch.float32)
     st.count = torch.ones(n)

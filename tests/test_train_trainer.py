@@ -11,7 +11,7 @@ from smgs.train.trainer import Trainer
 def _trainer(mode="3dgs", cap=4, **over) -> Trainer:
     cfg = to_dict(pattern_config(mode, cap=cap, steps=50))
     cfg.update(over)
-    return Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg))
+    return Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg), device="cpu")
 
 
 def test_periodic_finite_check_names_group_step_and_delay():

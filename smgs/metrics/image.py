@@ -105,7 +105,7 @@ def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
                     lpips: "lpips_mod.LPIPS | Missing | None" = None, lpips_net: str = "vgg",
                     lpips_weights: str | None = None,
                     lpips_input: "lpips_mod.InputConvention" = "lpips", flip: bool = True,
-                    quantize: bool = True) -> ImageMetrics:
+                    quantize: bool = True, device: torch.device | str | None = None) -> ImageMetrics:
     """PSNR, SSIM, LPIPS and FLIP per image.
 
     ``lpips``: a loaded network, a ``Missing`` to skip with that reason, or None to load ``lpips_net``
@@ -113,12 +113,15 @@ def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
     convention ``lpips_input`` ("lpips": [0, 1] mapped to [-1, 1] as the lpips package; "3dgs":
     [0, 1] fed unchanged as the 3DGS evaluation does; see ``smgs.metrics.lpips``).
     ``quantize``: round both images to 8 bits first, as 3DGS's PNG round trip does.
+    ``device``: where PSNR, SSIM and LPIPS are computed (None: the first prediction's device); FLIP
+    runs on the host (its package takes numpy arrays).
     """
     if len(preds) != len(gts):
         raise ValueError(f"{len(preds)} predictions but {len(gts)} ground-truth images")
     names = [f"{i:05d}" for i in range(len(preds))] if names is None else list(names)
+    dev = torch.device(device) if device is not None else (preds[0].device if len(preds) else None)
     if lpips is None:
-        lpips = lpips_mod.load_lpips(lpips_net, lpips_weights, input_convention=lpips_input)
+        lpips = lpips_mod.load_lpips(lpips_net, lpips_weights, input_convention=lpips_input, device=dev)
     lpips_name = (lpips.name if isinstance(lpips, lpips_mod.LPIPS)
                   else lpips_mod.metric_name(lpips_net, lpips_input))
     flip_ok = flip_available() if flip else Missing("FLIP not requested")
@@ -128,7 +131,7 @@ def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
     flips: list[float] = []
     for i, (p, g) in enumerate(zip(preds, gts)):
         _check_pair(p, g, i)
-        p, g = p.detach().float().cpu(), g.detach().float().cpu()
+        p, g = p.detach().float().to(dev), g.detach().float().to(dev)
         if quantize:
             p, g = quantize_8bit(p), quantize_8bit(g)
         psnrs.append(psnr(p, g))

@@ -159,14 +159,15 @@ def find_weights(net: str = "vgg", weights: str | os.PathLike | None = None) -> 
 
 def load_lpips(net: str = "vgg", weights: str | os.PathLike | None = None,
                input_convention: InputConvention = "lpips",
-               device: torch.device | str = "cpu") -> LPIPS | Missing:
+               device: torch.device | str | None = None) -> LPIPS | Missing:
     """A ready LPIPS network, or ``Missing`` saying why it cannot be had (no weights configured,
-    file absent or unreadable). Shape mismatches raise: a wrong file must not pass silently."""
+    file absent or unreadable). Shape mismatches raise: a wrong file must not pass silently.
+    ``device``: where the network runs (None: torch's default device)."""
     path = find_weights(net, weights)
     if isinstance(path, Missing):
         return path
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
+        blob = torch.load(path, map_location=device, weights_only=True)
     except Exception as e:  # a truncated or foreign file is "missing weights", with the cause
         return Missing(f"cannot read LPIPS weights {path}: {type(e).__name__}: {e}")
     if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT or blob.get("net") != net:
@@ -175,7 +176,7 @@ def load_lpips(net: str = "vgg", weights: str | os.PathLike | None = None,
     model = LPIPS(net, input_convention)
     model.load_state_dict(blob["state_dict"], strict=True)
     model.source = dict(blob.get("source", {}), path=str(path))
-    return model.to(device)
+    return model if device is None else model.to(device)
 
 
 def lpips_distance(img0: torch.Tensor, img1: torch.Tensor, net: str = "vgg",

@@ -12,15 +12,15 @@ C1 = 0.01**2
 C2 = 0.03**2
 
 
-def gaussian_kernel_1d(size: int = WINDOW, sigma: float = SIGMA) -> torch.Tensor:
-    """The normalised 1D Gaussian [size] (float64) whose outer product is the window."""
-    x = torch.arange(size, dtype=torch.float64) - size // 2
+def gaussian_kernel_1d(size: int = WINDOW, sigma: float = SIGMA, device=None) -> torch.Tensor:
+    """The normalised 1D Gaussian [size] (float64, on ``device``) whose outer product is the window."""
+    x = torch.arange(size, dtype=torch.float64, device=device) - size // 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
     return g / g.sum()
 
 
 def gaussian_window(size: int = WINDOW, sigma: float = SIGMA, dtype=torch.float32, device=None) -> torch.Tensor:
-    g = gaussian_kernel_1d(size, sigma)
+    g = gaussian_kernel_1d(size, sigma, device)
     return (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
 
 

@@ -11,7 +11,6 @@ every library loaded, so compare them only between runs of the same process layo
 
 from __future__ import annotations
 
-import platform
 import resource
 import statistics
 import sys
@@ -22,26 +21,11 @@ from typing import Any, Callable, Iterator, Sequence
 
 import torch
 
-
-def device_name(device: torch.device | str = "cpu") -> str:
-    """A human-readable device name: the GPU model, or the CPU model and the torch thread count."""
-    device = torch.device(device)
-    if device.type == "cuda":
-        return f"cuda:{torch.cuda.get_device_name(device)}"
-    model = ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    model = model or platform.processor() or platform.machine()
-    return f"cpu:{model} ({torch.get_num_threads()} threads)"
+from smgs.device import device_name  # noqa: F401  (re-exported: reports and bench import it here)
 
 
-def _sync(device: torch.device) -> None:
+def synchronize(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (a GPU runs asynchronously; the CPU needs nothing)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -60,8 +44,8 @@ class FPSResult:
         return asdict(self)
 
 
-def measure_render_fps(render: Callable[[Any], Any], cameras: Sequence[Any], *, warmup: int = 3,
-                       repeats: int = 5, device: torch.device | str = "cpu") -> FPSResult:
+def measure_render_fps(render: Callable[[Any], Any], cameras: Sequence[Any], *, device: torch.device | str,
+                       warmup: int = 3, repeats: int = 5) -> FPSResult:
     """Frames per second of ``render(camera)`` over ``cameras``.
 
     ``warmup`` renders (cycling through the cameras) are discarded; then each repeat renders every
@@ -75,13 +59,13 @@ def measure_render_fps(render: Callable[[Any], Any], cameras: Sequence[Any], *, 
     with torch.no_grad():
         for i in range(warmup):
             render(cameras[i % len(cameras)])
-        _sync(dev)
+        synchronize(dev)
         per_view = []
         for _ in range(repeats):
             t0 = time.perf_counter()
             for cam in cameras:
                 render(cam)
-            _sync(dev)
+            synchronize(dev)
             per_view.append((time.perf_counter() - t0) / len(cameras))
     med = statistics.median(per_view)
     return FPSResult(fps=(1.0 / med) if med > 0 else float("inf"), median_seconds_per_view=med,
@@ -131,17 +115,17 @@ def _ru_maxrss_bytes() -> int:
 
 
 @contextmanager
-def track_peak_memory(device: torch.device | str = "cpu") -> Iterator[PeakMemory]:
+def track_peak_memory(device: torch.device | str) -> Iterator[PeakMemory]:
     """``with track_peak_memory(dev) as pm: ...``; afterwards ``pm.bytes`` and ``pm.kind``."""
     dev = torch.device(device)
     if dev.type == "cuda":
-        _sync(dev)
+        synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         pm = PeakMemory(device_name(dev), "cuda_max_memory_allocated")
         try:
             yield pm
         finally:
-            _sync(dev)
+            synchronize(dev)
             pm.bytes = int(torch.cuda.max_memory_allocated(dev))
         return
     if _reset_vm_hwm() and _vm_hwm_bytes() is not None:
@@ -164,19 +148,19 @@ class TrainClock:
     else (evaluation, checkpoints, logging outside the blocks) does not. Synchronises CUDA at each
     boundary so queued GPU work is charged to the block that launched it."""
 
-    device: str = "cpu"
+    device: str | torch.device
     seconds: float = 0.0
     excluded: dict[str, float] = field(default_factory=dict)
 
     @contextmanager
     def _timed(self, sink: Callable[[float], None]) -> Iterator[None]:
         dev = torch.device(self.device)
-        _sync(dev)
+        synchronize(dev)
         t0 = time.perf_counter()
         try:
             yield
         finally:
-            _sync(dev)
+            synchronize(dev)
             sink(time.perf_counter() - t0)
 
     def training(self) -> AbstractContextManager[None]:

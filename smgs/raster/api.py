@@ -29,9 +29,11 @@ def _load_backend(name: str) -> Callable[..., RenderOutput]:
     return getattr(importlib.import_module(module), fn)
 
 
-def backend_available(name: str, device: torch.device | str = "cpu",
+def backend_available(name: str, device: torch.device | str,
                       dtype: torch.dtype = torch.float32) -> bool:
-    """Whether ``name`` can render tensors of this device and dtype here."""
+    """Whether ``name`` can render tensors of this device and dtype here. A compiled backend whose
+    toolchain is present but whose build fails raises ``smgs.raster.jit.BuildError`` (the cause and
+    the fix) rather than answering False."""
     device = torch.device(device)
     if name == "reference":
         return True
@@ -53,7 +55,9 @@ def backend_available(name: str, device: torch.device | str = "cpu",
 
 
 def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype) -> str:
-    """'auto' picks the fastest backend available for the tensors' device and dtype."""
+    """'auto' picks the fastest backend available for the tensors' device and dtype; it falls back
+    to the reference only where a compiled backend lacks its toolchain or is switched off, never
+    past a failed build (``BuildError``)."""
     if backend != "auto":
         if backend not in _BACKENDS:
             _load_backend(backend)  # raises the error that lists the backends

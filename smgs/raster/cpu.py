@@ -1,13 +1,14 @@
 """Compiled CPU backend (C++/OpenMP, SIMD over the pixels of a tile): forward and hand-written backward.
 
-Built just in time with ``torch.utils.cpp_extension.load`` on first use and cached by PyTorch (in
-``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``); later processes load the cached
-library in well under a second. The sources are ``csrc/cpu_kernel.cpp`` and ``csrc/splat_math.h``
-(the per-splat math shared with other compiled backends). Same images and gradients as
+Built just in time with ``torch.utils.cpp_extension.load`` on first use and cached (in
+``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``) by a key of the sources, flags and CPU
+kind (``smgs.raster.buildcache``); later processes load the cached library in well under a second.
+The sources are ``csrc/cpu_kernel.cpp`` and ``csrc/splat_math.h`` (the per-splat math shared with
+other compiled backends). Same images and gradients as
 ``smgs.raster.reference`` to float32 rounding (tests/test_raster_cpu.py states the tolerances).
 
 Set ``SMGS_DISABLE_CPU_BACKEND=1`` to make ``is_available()`` report False (``auto`` then falls back
-to the reference).
+to the reference); so does a missing compiler or ninja. Any other build failure raises ``BuildError``.
 """
 
 from __future__ import annotations
@@ -22,12 +23,14 @@ from pathlib import Path
 import torch
 
 from smgs.raster import constants as K
+from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
 from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
 
 log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).parent / "csrc"
+DISABLE = "SMGS_DISABLE_CPU_BACKEND"
 _SOURCES = ("cpu_kernel.cpp",)
 _HEADERS = ("splat_math.h",)
 # -ffp-contract=off keeps a·b + c as two roundings, as PyTorch evaluates the reference, so the
@@ -54,26 +57,29 @@ def _cpu_tag() -> str:
 
 
 def _precheck() -> str | None:
-    if os.environ.get("SMGS_DISABLE_CPU_BACKEND", "") not in ("", "0"):
-        return "disabled by SMGS_DISABLE_CPU_BACKEND"
+    """A missing toolchain (or the switch) is "unavailable"; any other build failure is an error."""
+    if os.environ.get(DISABLE, "") not in ("", "0"):
+        return f"disabled by {DISABLE}"
     if shutil.which(os.environ.get("CXX", "c++")) is None:
         return f"no C++ compiler ({os.environ.get('CXX', 'c++')!r} not on PATH)"
+    from torch.utils.cpp_extension import is_ninja_available
+
+    if not is_ninja_available():
+        return "no ninja build tool (pip install ninja)"
     return None
 
 
 def cpu_extension(name: str, sources: list[Path], what: str, include: list[Path] | None = None) -> JitExtension:
-    """A compiled CPU extension of smgs (``_CFLAGS``, OpenMP, named per CPU kind), built just in
-    time on first use: the renderer here, the projection and the training loss elsewhere."""
+    """A compiled CPU extension of smgs (``_CFLAGS``, OpenMP), built just in time on first use and
+    cached by a key of its sources, flags and CPU kind (``smgs.raster.buildcache``): the renderer
+    here, the projection and the training loss elsewhere."""
 
     def build(suffix: str, defines: tuple[str, ...]):
-        from torch.utils.cpp_extension import load, verify_ninja_availability
+        return compile_and_load(ExtensionSpec(
+            name=f"{name}{suffix}", sources=tuple(sources), what=what, include_dirs=tuple(include or ()),
+            cflags=tuple(_CFLAGS) + tuple(defines), ldflags=("-fopenmp",), target=_cpu_tag()))
 
-        verify_ninja_availability()
-        return load(name=f"{name}_{_cpu_tag()}{suffix}", sources=[str(s) for s in sources],
-                    extra_include_paths=[str(i) for i in include or []], extra_cflags=_CFLAGS + list(defines),
-                    extra_ldflags=["-fopenmp"], verbose=False)
-
-    return JitExtension("cpu", build, _precheck, what=what)
+    return JitExtension("cpu", build, _precheck, what=what, disable=DISABLE)
 
 
 class UnsupportedInput(ValueError, RuntimeError):

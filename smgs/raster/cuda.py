@@ -2,8 +2,9 @@
 hand-written backward, one thread per pixel (the 3DGS layout).
 
 Built just in time with ``torch.utils.cpp_extension.load`` on first use, when PyTorch is a CUDA
-build, a CUDA device is visible and the CUDA toolkit (nvcc) is found; cached by PyTorch like the CPU
-backend. Sources: ``csrc/cuda_kernel.cu`` (kernels and launchers, no torch types), ``csrc/cuda_binding.cpp``
+build, a CUDA device is visible and the CUDA toolkit (nvcc) is found; cached like the CPU
+backend (``smgs.raster.buildcache``, keyed by the sources, flags and GPU archs). Sources:
+``csrc/cuda_kernel.cu`` (kernels and launchers, no torch types), ``csrc/cuda_binding.cpp``
 (tensors and the binning pipeline's host steps) and ``csrc/splat_math.h``, the per-splat math the CPU
 kernel includes too, so the GPU runs the math the CPU tests check.
 
@@ -23,6 +24,7 @@ from pathlib import Path
 import torch
 
 from smgs.raster import constants as K
+from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
 from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
 
@@ -53,6 +55,10 @@ def _why_not_buildable() -> str | None:
 
     if CUDA_HOME is None:
         return "no CUDA toolkit found (set CUDA_HOME, or put nvcc on PATH)"
+    from torch.utils.cpp_extension import is_ninja_available
+
+    if not is_ninja_available():
+        return "no ninja build tool (pip install ninja)"
     return None
 
 
@@ -64,16 +70,14 @@ def _arch_tag() -> str:
 
 
 def _build(suffix: str = "", defines: tuple[str, ...] = ()):
-    from torch.utils.cpp_extension import load, verify_ninja_availability
-
-    verify_ninja_availability()
-    return load(name=f"smgs_raster_cuda_sm{_arch_tag()}{suffix}", sources=[str(_CSRC / s) for s in SOURCES],
-                extra_include_paths=[str(_CSRC)], extra_cflags=CFLAGS + list(defines),
-                extra_cuda_cflags=CUDA_CFLAGS + list(defines), verbose=False)
+    return compile_and_load(ExtensionSpec(
+        name=f"smgs_raster_cuda{suffix}", sources=tuple(_CSRC / s for s in SOURCES), what="CUDA renderer backend",
+        include_dirs=(_CSRC,), cflags=tuple(CFLAGS) + defines, cuda_cflags=tuple(CUDA_CFLAGS) + defines,
+        target=f"sm{_arch_tag()} {os.environ.get('TORCH_CUDA_ARCH_LIST', '')}"))
 
 
 # no CUDA here is the common case, not worth a warning: quiet_precheck
-_JIT = JitExtension("cuda", _build, _why_not_buildable, quiet_precheck=True)
+_JIT = JitExtension("cuda", _build, _why_not_buildable, quiet_precheck=True, disable="SMGS_DISABLE_CUDA_BACKEND")
 is_available = _JIT.is_available
 unavailable_reason = _JIT.unavailable_reason
 

@@ -58,8 +58,8 @@ def _rot_linear(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor,
         (0, [(2, x, y), (2, w, z)]), (1, [(-2, x, x), (-2, z, z)]), (0, [(2, y, z), (-2, w, x)]),
         (0, [(2, x, z), (-2, w, y)]), (0, [(2, y, z), (2, w, x)]), (1, [(-2, x, x), (-2, y, y)]),
     ]
-    lin = torch.zeros(16, 9, dtype=torch.float64)
-    const = torch.zeros(9, dtype=torch.float64)
+    lin = torch.zeros(16, 9, dtype=torch.float64, device=device)
+    const = torch.zeros(9, dtype=torch.float64, device=device)
     for k, (c, prods) in enumerate(terms):
         const[k] = c
         for coef, a, b in prods:

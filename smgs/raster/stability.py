@@ -98,7 +98,7 @@ def run(s: dict, mode: str, eq15: str = "solved", backend: str = "reference"):
     """Render a case and back-propagate a fixed loss; returns (output, {input: gradient})."""
     inputs = [s[k].clone().requires_grad_(True) for k in KEYS]
     out = rasterize_splats(*inputs, W, H, mode=mode, k_max=64, backend=backend, eq15=eq15)
-    loss = (out.rgb * torch.linspace(0.5, 1.5, 3, dtype=out.rgb.dtype)).sum() + out.alpha.sum() \
+    loss = (out.rgb * torch.linspace(0.5, 1.5, 3, dtype=out.rgb.dtype, device=out.rgb.device)).sum() + out.alpha.sum() \
         + 0.1 * out.depth.sum()
     if not loss.requires_grad:  # no splat reached any pixel: the image does not depend on them
         return out, {k: torch.zeros_like(t) for k, t in zip(KEYS, inputs)}
@@ -117,10 +117,11 @@ def stiff_battery(backends=("reference", "cpu"), dtypes=("float32",), modes=MODE
         for backend in backends:
             for dt in dtypes:
                 dtype = getattr(torch, dt)
-                if not backend_available(backend, "cpu", dtype):
+                case = make_case(spec, dtype)
+                if not backend_available(backend, case["means2d"].device, dtype):
                     continue
                 for m in modes:
-                    out, grads = run(make_case(spec, dtype), m, backend=backend)
+                    out, grads = run(case, m, backend=backend)
                     o64, g64 = ref64[m]
                     outs = [(out.rgb, o64.rgb), (out.alpha, o64.alpha), (out.depth, o64.depth)]
                     nonfinite_out = sum(int((~torch.isfinite(a.detach())).sum()) for a, _ in outs)

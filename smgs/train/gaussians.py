@@ -48,13 +48,14 @@ def knn_scale(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tens
     clamped at 1e-7 before the sqrt as 3DGS does; chunked so 100K points fit in memory."""
     n = points.shape[0]
     if n <= 1:
-        return torch.ones(n, dtype=points.dtype)
+        return points.new_ones(n)
     k = min(k, n - 1)
-    out = torch.empty(n, dtype=points.dtype)
+    out = points.new_empty(n)
     p = points.double()
     for i in range(0, n, chunk):
         d2 = torch.cdist(p[i:i + chunk], p).square()
-        d2[torch.arange(d2.shape[0]), torch.arange(i, i + d2.shape[0])] = float("inf")
+        rows = torch.arange(d2.shape[0], device=p.device)
+        d2[rows, rows + i] = float("inf")
         out[i:i + chunk] = d2.topk(k, largest=False).values.mean(1).clamp_min(1e-7).sqrt().to(points.dtype)
     return out
 
@@ -77,26 +78,32 @@ class Gaussians:
     # -- construction ------------------------------------------------------------------------
     @classmethod
     def from_points(cls, points: torch.Tensor, colors: torch.Tensor, cfg: GaussianConfig, extent: float,
-                    sh_degree: int, scales: torch.Tensor | None = None) -> "Gaussians":
+                    sh_degree: int, scales: torch.Tensor | None = None, *,
+                    device: torch.device | str) -> "Gaussians":
         """3DGS initialisation: colour to the SH DC term, log kNN scale (isotropic), identity
-        rotation, opacity ``init_opacity``; α, β, γ at their configured initial values."""
-        points = points.float()
+        rotation, opacity ``init_opacity``; α, β, γ at their configured initial values. Every
+        parameter is created on ``device`` (the inputs are moved there first)."""
+        points = points.to(device=device, dtype=torch.float32)
         n = points.shape[0]
         if scales is None:
             scales = knn_scale(points)[:, None].expand(n, 3)
         k = num_sh_bases(sh_degree)
-        quats = torch.zeros(n, 4)
+
+        def full(shape: tuple[int, ...], value: float) -> torch.Tensor:
+            return torch.full(shape, value, dtype=torch.float32, device=device)
+
+        quats = full((n, 4), 0.0)
         quats[:, 0] = 1.0
         p = {
             "means": points.clone(),
-            "scales": torch.log(scales.float()).clone(),
+            "scales": torch.log(scales.to(device=device, dtype=torch.float32)).clone(),
             "quats": quats,
-            "opacities": inverse_sigmoid(torch.full((n,), float(cfg.init_opacity))),
-            "sh0": rgb_to_sh0(colors.float())[:, None, :].clone(),
-            "shN": torch.zeros(n, k - 1, 3),
-            "alpha": torch.full((n,), _inverse(cfg.alpha.init, cfg.alpha.activation)),
-            "beta": torch.full((n,), _inverse(cfg.beta.init, cfg.beta.activation)),
-            "gamma": torch.full((n,), _inverse(cfg.gamma.init, cfg.gamma.activation)),
+            "opacities": inverse_sigmoid(full((n,), float(cfg.init_opacity))),
+            "sh0": rgb_to_sh0(colors.to(device=device, dtype=torch.float32))[:, None, :].clone(),
+            "shN": full((n, k - 1, 3), 0.0),
+            "alpha": full((n,), _inverse(cfg.alpha.init, cfg.alpha.activation)),
+            "beta": full((n,), _inverse(cfg.beta.init, cfg.beta.activation)),
+            "gamma": full((n,), _inverse(cfg.gamma.init, cfg.gamma.activation)),
         }
         return cls({name: t.contiguous().requires_grad_(True) for name, t in p.items()}, cfg, extent,
                    sh_degree)
@@ -150,30 +157,40 @@ class Gaussians:
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {k: v.detach().clone() for k, v in self.params.items()}
 
+    @property
+    def device(self) -> torch.device:
+        return self.params["means"].device
+
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore parameters onto this model's device (a checkpoint from another device loads)."""
         missing = set(PARAM_NAMES) - set(state)
         if missing:
             raise ValueError(f"checkpoint lacks parameter groups {sorted(missing)}")
-        self.params = {k: state[k].detach().clone().contiguous().requires_grad_(True) for k in PARAM_NAMES}
+        dev = self.device
+        self.params = {k: state[k].detach().to(dev, copy=True).contiguous().requires_grad_(True)
+                       for k in PARAM_NAMES}
 
 
 def flat_layout(n: int, depth: float, spacing: float, center: torch.Tensor | None = None,
                 rotation: torch.Tensor | None = None, jitter: float = 0.0,
-                generator: torch.Generator | None = None) -> torch.Tensor:
+                generator: torch.Generator | None = None, device: torch.device | str | None = None) -> torch.Tensor:
     """n points on a centred square grid (row-major, ⌈√n⌉ per row) ``spacing`` apart, at ``depth``
     in front of a camera (camera-to-world ``rotation``, ``center``): the paper's "identical
     Gaussians slightly apart at depth 1" (supp. Sec. 6). ``jitter`` moves each point in x and y by
-    a uniform offset in ±jitter·spacing (drawn from ``generator``)."""
+    a uniform offset in ±jitter·spacing (drawn from ``generator``, on its device). The points are
+    on ``device`` (default: the generator's device, else torch's default)."""
+    if device is None and generator is not None:
+        device = generator.device
     side = max(1, math.ceil(math.sqrt(n)))
-    idx = torch.arange(n)
+    idx = torch.arange(n, device=device)
     gx = (idx % side).double() - (side - 1) / 2
     gy = (idx // side).double() - (math.ceil(n / side) - 1) / 2
     if jitter:
-        off = (torch.rand(n, 2, generator=generator, dtype=torch.float64) * 2 - 1) * jitter
+        off = (torch.rand(n, 2, generator=generator, dtype=torch.float64, device=device) * 2 - 1) * jitter
         gx, gy = gx + off[:, 0], gy + off[:, 1]
     local = torch.stack([gx * spacing, gy * spacing, torch.full_like(gx, depth)], dim=1)
     if rotation is not None:
-        local = local @ rotation.double().T
+        local = local @ rotation.to(device=local.device, dtype=torch.float64).T
     if center is not None:
-        local = local + center.double()
+        local = local + center.to(device=local.device, dtype=torch.float64)
     return local.float()

@@ -69,7 +69,7 @@ class _RayVarianceCPU(torch.autograd.Function):
     def forward(ctx, reg, r: int):  # type: ignore[override]
         ctx.save_for_backward(reg)
         ctx.r = r
-        return _JIT.module().ray_variance(reg, r, torch.empty(0))[0]
+        return _JIT.module().ray_variance(reg, r, reg.new_empty(0))[0]
 
     @staticmethod
     @once_differentiable
@@ -97,13 +97,15 @@ class PhotometricLoss:
         self.lam = float(lambda_dssim)
         self.fused = fused
         self._ssim = SSIMLoss()
-        self._window = gaussian_kernel_1d().to(torch.float32)
+        self._window: torch.Tensor | None = None    # the compiled pass's window (on the CPU, made there)
 
     def __call__(self, x: torch.Tensor, y: torch.Tensor) -> LossParts:
         if x.shape != y.shape or x.dim() != 3:
             raise ValueError(f"render and target must be [H, W, C] of one shape, got {tuple(x.shape)} "
                              f"and {tuple(y.shape)}")
         if use_cpu_kernel(_JIT, self.fused, (x,), "images"):
+            if self._window is None:
+                self._window = gaussian_kernel_1d(device=x.device).to(torch.float32)
             total, stats = _PhotometricCPU.apply(x, y.detach().to(x.dtype), self._window, self.lam)
             l1v, ssim_v, mse = (float(v) for v in stats[1:])
             return LossParts(total, l1v, ssim_v, mse)

@@ -24,11 +24,11 @@ def _band(n: int, dtype: torch.dtype, device) -> torch.Tensor:
     """[n, n] matrix M with (M @ x)[i] = Σ_k g[k]·x[i + k − r] (zero padding): the 1D window.
     Symmetric, since the window is."""
     r = WINDOW // 2
-    g = gaussian_kernel_1d()
-    i = torch.arange(n)
+    g = gaussian_kernel_1d(device=device)
+    i = torch.arange(n, device=device)
     off = i[None, :] - i[:, None] + r                     # j − i + r
     ok = (off >= 0) & (off < WINDOW)
-    return torch.where(ok, g[off.clamp(0, WINDOW - 1)], torch.zeros(())).to(dtype=dtype, device=device)
+    return (g[off.clamp(0, WINDOW - 1)] * ok).to(dtype)
 
 
 def _blur(s: torch.Tensor, bv: torch.Tensor, bh: torch.Tensor) -> torch.Tensor:
@@ -124,7 +124,7 @@ class _RayVariance(torch.autograd.Function):
     def forward(ctx, reg, r: int):  # type: ignore[override]
         s = reg.reshape(-1, 1 + 2 * r).T.contiguous()          # [1 + 2R, P]
         hit = s[0] > 0
-        inv = torch.where(hit, s[0], torch.ones((), dtype=s.dtype)).reciprocal_().mul_(hit)
+        inv = torch.where(hit, s[0], s.new_ones(())).reciprocal_().mul_(hit)
         mean = s[1:1 + r] * inv
         var = s[1 + r:] * inv - mean * mean
         keep = var >= 0

@@ -19,10 +19,9 @@ sigmoid(-k (o - t)) (k = ``mcmc_gate_k``, t = ``mcmc_gate_t``): dead Gaussians e
 
 from __future__ import annotations
 
-import math
-
 import torch
 
+from smgs.device import generator_state, restore_generator
 from smgs.raster.projection import quat_to_rotmat
 from smgs.train.config import DensifyConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians
@@ -99,32 +98,15 @@ class MCMCStrategy:
 
     kind = "mcmc"
 
-    def __init__(self, cfg: DensifyConfig, seed: int = 0) -> None:
+    def __init__(self, cfg: DensifyConfig, seed: int = 0, *, device: torch.device | str) -> None:
         if not cfg.cap or cfg.cap < 1:
             raise ValueError("the mcmc strategy needs a cap on the count (densify.cap, e.g. budget=mcmc_<cap>)")
         if not 0 <= cfg.mcmc_grow_rate:
             raise ValueError(f"densify.mcmc_grow_rate must be >= 0, got {cfg.mcmc_grow_rate}")
         self.cfg = cfg
-        self.seed = int(seed)
-        self._gen: torch.Generator | None = None
-        self._saved: tuple[str, torch.Tensor] | None = None   # loaded state, applied on first use
-
-    # -- random stream on the Gaussians' device ----------------------------------------------
-    def generator(self, device: torch.device) -> torch.Generator:
-        device = torch.device(device)
-        if self._gen is not None and self._gen.device.type == device.type:
-            return self._gen
-        gen = torch.Generator(device=device)
-        gen.manual_seed(self.seed + SEED_OFFSET)
-        if self._saved is not None:
-            kind, state = self._saved
-            if kind != device.type:
-                raise ValueError(f"the mcmc strategy's random state was saved on {kind}, this run is on "
-                                 f"{device.type}: resume on a {kind} device (or start the run afresh)")
-            gen.set_state(state)
-            self._saved = None
-        self._gen = gen
-        return gen
+        self.device = torch.device(device)
+        self.seed = int(seed) + SEED_OFFSET
+        self.gen = torch.Generator(device=self.device).manual_seed(self.seed)
 
     # -- the Strategy interface --------------------------------------------------------------
     def describe(self) -> list[str]:
@@ -141,7 +123,7 @@ class MCMCStrategy:
         n, cap = len(g), int(self.cfg.cap)
         if n <= cap:
             return []
-        gen = self.generator(g.means.device)
+        gen = self.gen
         keep = torch.zeros(n, dtype=torch.bool, device=g.means.device)
         keep[torch.randperm(n, generator=gen, device=g.means.device)[:cap]] = True
         opt.keep(keep)
@@ -173,14 +155,13 @@ class MCMCStrategy:
         c = self.cfg
         if c.mcmc_noise_lr > 0 and lr_means > 0 and len(g):
             noise = position_noise(g, lr_means, c.mcmc_noise_lr, c.mcmc_gate_k, c.mcmc_gate_t,
-                                   self.generator(g.means.device))
+                                   self.gen)
             g.params["means"].add_(noise)
         return ev
 
     # -- operations --------------------------------------------------------------------------
     def _sample(self, probs: torch.Tensor, n: int) -> torch.Tensor:
-        gen = self.generator(probs.device)
-        return torch.multinomial(probs, n, replacement=True, generator=gen)
+        return torch.multinomial(probs, n, replacement=True, generator=self.gen)
 
     def _split_sources(self, g: Gaussians, opt: GaussianOptimizer, src: torch.Tensor) -> dict[str, torch.Tensor]:
         """Give each source drawn n times (in ``src``) the eq. (9) opacity and scale for n + 1 and
@@ -220,16 +201,11 @@ class MCMCStrategy:
 
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        if self._gen is not None:
-            gen = (self._gen.device.type, self._gen.get_state())
-        else:
-            gen = self._saved
-        return {"kind": self.kind, "gen": None if gen is None else {"device": gen[0], "state": gen[1].clone()}}
+        return {"kind": self.kind, "gen": generator_state(self.gen)}
 
     def load_state_dict(self, state: dict) -> None:
+        """The generator as ``smgs.device.restore_generator`` (exact on the same kind of device)."""
         if state.get("kind") != self.kind:
             raise ValueError(f"checkpoint has the {state.get('kind', 'default')!r} densification strategy's state, "
                              f"this run uses {self.kind!r} (densify.strategy)")
-        self._gen = None
-        gen = state.get("gen")
-        self._saved = None if gen is None else (gen["device"], gen["state"].clone())
+        restore_generator(self.gen, state["gen"], self.seed)

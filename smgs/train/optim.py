@@ -99,7 +99,7 @@ class GaussianOptimizer:
                 continue
             st = self.opt.state[p]
             if not st:
-                st["step"] = torch.tensor(0.0)
+                st["step"] = torch.zeros((), device=p.device)   # torch's fused Adam wants it there
                 st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                 st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
             live.append(p)
@@ -146,7 +146,7 @@ class GaussianOptimizer:
             old = self.g.params[name].detach()
             add = extra[name].to(old.dtype)
             self._swap(name, torch.cat([old, add], 0),
-                       lambda m, add=add: torch.cat([m, torch.zeros((add.shape[0], *m.shape[1:]), dtype=m.dtype)], 0))
+                       lambda m, add=add: torch.cat([m, m.new_zeros((add.shape[0], *m.shape[1:]))], 0))
 
     def keep(self, mask: torch.Tensor) -> None:
         """Keep the rows where ``mask`` is true in every group and its Adam moments (3DGS
@@ -184,7 +184,8 @@ class GaussianOptimizer:
         return {"groups": out, "lrs": {n: self.lr(n) for n in self.names}}
 
     def load_state_dict(self, state: dict) -> None:
-        """Re-bind to the Gaussians' current tensors (call after ``Gaussians.load_state_dict``)."""
+        """Re-bind to the Gaussians' current tensors (call after ``Gaussians.load_state_dict``); the
+        moments move to the parameters' device (a checkpoint from another device loads)."""
         self.opt.state.clear()
         for name in self.names:
             p = self.g.params[name]
@@ -192,4 +193,5 @@ class GaussianOptimizer:
             self._group[name]["lr"] = state["lrs"][name]
             st = state["groups"].get(name)
             if st is not None:
-                self.opt.state[p] = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in st.items()}
+                self.opt.state[p] = {k: (v.to(p.device, copy=True) if torch.is_tensor(v) else v)
+                                     for k, v in st.items()}

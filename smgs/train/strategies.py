@@ -56,13 +56,15 @@ class Strategy(Protocol):
     def load_state_dict(self, state: dict) -> None: ...
 
 
-def make_strategy(cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0) -> Strategy:
-    """The strategy ``cfg.strategy`` names. ``size_prune`` only matters to the default one."""
+def make_strategy(cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0, *,
+                  device: torch.device | str) -> Strategy:
+    """The strategy ``cfg.strategy`` names, on the run's ``device``. ``size_prune`` only matters
+    to the default one."""
     if cfg.strategy == "default" or not cfg.enabled:
-        return DefaultStrategy(cfg, extent, size_prune, seed=seed)
+        return DefaultStrategy(cfg, extent, size_prune, seed=seed, device=device)
     if cfg.strategy == "mcmc":
         from smgs.train.mcmc import MCMCStrategy
 
-        return MCMCStrategy(cfg, seed=seed)
+        return MCMCStrategy(cfg, seed=seed, device=device)
     raise ValueError(f"unknown densification strategy {cfg.strategy!r}; known: {', '.join(STRATEGIES)} "
                      "(densify.strategy)")

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from smgs.device import generator_state, restore_generator
 from smgs.raster.projection import quat_to_rotmat
 from smgs.train.config import DensifyConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, inverse_sigmoid
@@ -47,29 +48,31 @@ class RefineEvent:
 class DefaultStrategy:
     """Clone / split / prune / opacity reset over a ``Gaussians`` and its ``GaussianOptimizer``.
 
-    ``size_prune`` is the resolved world-space size threshold (relative to the extent).
+    ``size_prune`` is the resolved world-space size threshold (relative to the extent); ``device``
+    the run's device (statistics and the split samples' generator live there).
     Implements ``smgs.train.strategies.Strategy``.
     """
 
     kind = "default"
 
-    def __init__(self, cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0) -> None:
+    def __init__(self, cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0, *,
+                 device: torch.device | str) -> None:
         self.cfg = cfg
         self.extent = float(extent)
         self.size_prune = float(size_prune)
-        self.gen = torch.Generator().manual_seed(int(seed) + 7919)
-        self.grad2d = torch.zeros(0)
-        self.count = torch.zeros(0)
-        self.max_radii = torch.zeros(0)
+        self.device = torch.device(device)
+        self.seed = int(seed) + 7919
+        self.gen = torch.Generator(device=self.device).manual_seed(self.seed)
+        self._reset_stats(0)
 
     def _ensure(self, n: int) -> None:
         if self.grad2d.shape[0] != n:
             self._reset_stats(n)
 
     def _reset_stats(self, n: int) -> None:
-        self.grad2d = torch.zeros(n)
-        self.count = torch.zeros(n)
-        self.max_radii = torch.zeros(n)
+        self.grad2d = torch.zeros(n, device=self.device)
+        self.count = torch.zeros(n, device=self.device)
+        self.max_radii = torch.zeros(n, device=self.device)
 
     def active(self, iteration: int) -> bool:
         return self.cfg.enabled and iteration < self.cfg.refine_stop
@@ -123,7 +126,7 @@ class DefaultStrategy:
         self._ensure(n)
         if ids.numel() == 0 or means2d_grad is None:
             return
-        g = means2d_grad.detach() * torch.tensor([width / 2.0, height / 2.0], dtype=means2d_grad.dtype)
+        g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])
         vis = (radii > 0).all(dim=1)
         ids = ids[vis]
         self.grad2d.index_add_(0, ids, g[vis].norm(dim=1).to(self.grad2d.dtype))
@@ -183,7 +186,7 @@ class DefaultStrategy:
             k_n = c.split_n
             sel = torch.nonzero(split).squeeze(1).repeat(k_n)
             s = g.scales.detach()[sel]
-            samples = torch.randn(s.shape, generator=self.gen, dtype=s.dtype) * s
+            samples = torch.randn(s.shape, generator=self.gen, dtype=s.dtype, device=s.device) * s
             rot = quat_to_rotmat(p["quats"][sel])
             for k in PARAM_NAMES:
                 if k == "means":
@@ -197,10 +200,10 @@ class DefaultStrategy:
         n_new = len(g) - n
         # Originals of the split Gaussians go; so do transparent ones and, after the first
         # reset, big ones (3DGS ``densify_and_prune``: max_radii2D is not grown for new rows).
-        drop = torch.cat([split, torch.zeros(n_new, dtype=torch.bool)])
+        drop = torch.cat([split, split.new_zeros(n_new)])
         drop |= g.opacities.detach() < c.prune_opacity
         if prune_big:
-            radii = torch.cat([self.max_radii, torch.zeros(n_new)])
+            radii = torch.cat([self.max_radii, self.max_radii.new_zeros(n_new)])
             drop |= radii > c.prune_screen_px
             drop |= g.scales.detach().max(dim=1).values > self.size_prune * self.extent
         n_pruned = int(drop.sum()) - n_split
@@ -212,19 +215,20 @@ class DefaultStrategy:
     @torch.no_grad()
     def reset_opacity(self, g: Gaussians, opt: GaussianOptimizer) -> None:
         """Opacities to min(opacity, reset_value); the opacity Adam moments restart at 0."""
-        new = torch.minimum(g.opacities.detach(), torch.tensor(self.cfg.reset_value))
+        new = g.opacities.detach().clamp_max(self.cfg.reset_value)
         opt.reset("opacities", inverse_sigmoid(new))
 
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"grad2d": self.grad2d.clone(), "count": self.count.clone(), "max_radii": self.max_radii.clone(),
-                "gen": self.gen.get_state()}
+                "gen": generator_state(self.gen)}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore onto this strategy's device; the generator as ``smgs.device.restore_generator``."""
         if state.get("kind", self.kind) != self.kind:
             raise ValueError(f"checkpoint has the {state['kind']!r} densification strategy's state, this run "
                              f"uses {self.kind!r} (densify.strategy)")
-        self.grad2d = state["grad2d"].clone()
-        self.count = state["count"].clone()
-        self.max_radii = state["max_radii"].clone()
-        self.gen.set_state(state["gen"])
+        self.grad2d = state["grad2d"].to(self.device, copy=True)
+        self.count = state["count"].to(self.device, copy=True)
+        self.max_radii = state["max_radii"].to(self.device, copy=True)
+        restore_generator(self.gen, state["gen"], self.seed)

@@ -8,6 +8,7 @@ mode switch; ``baselines.splatting`` wraps it in the ``Method`` interface. The c
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from typing import Any
@@ -16,6 +17,7 @@ import torch
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
+from smgs.device import check_backend, generator_state, resolve_device, restore_generator
 from smgs.raster import RenderOutput, mode_flags, rasterize
 from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
@@ -25,6 +27,8 @@ from smgs.train.image_loss import PhotometricLoss, ray_variance
 from smgs.train.optim import GaussianOptimizer
 from smgs.train.strategies import make_strategy
 from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
+
+log = logging.getLogger(__name__)
 
 
 class NonFiniteError(FloatingPointError):
@@ -51,12 +55,16 @@ def trainable_groups(mode: str, max_sh_degree: int) -> tuple[str, ...]:
 
 
 class Trainer:
-    """Trains Gaussians on a ``Scene`` with a ``TrainConfig``; deterministic for a given seed
-    (initialisation, view order and split samples use private generators, saved in
-    checkpoints)."""
+    """Trains Gaussians on a ``Scene`` with a ``TrainConfig`` on ``device`` (``smgs.device``:
+    a ``torch.device`` or a setting such as "auto", "cuda:1"). Every tensor of the run lives there:
+    the scene's training images and background are copied there once. Deterministic for a given
+    seed and device (initialisation, view order, random backgrounds and split samples use private
+    generators on the device, saved in checkpoints)."""
 
-    def __init__(self, scene: Scene, cfg: TrainConfig) -> None:
+    def __init__(self, scene: Scene, cfg: TrainConfig, *, device: torch.device | str) -> None:
         mode_flags(cfg.mode)  # validates the mode
+        self.device = resolve_device(device)
+        check_backend(cfg.backend, self.device)
         keep_freed_buffers()  # per-step image temporaries reuse heap pages (see smgs.train.allocator)
         self.scene = scene
         self.cfg = cfg
@@ -67,7 +75,7 @@ class Trainer:
         self.max_sh_degree = 0 if scene.flat else gc.max_sh_degree
         if scene.flat and gc.max_sh_degree:
             self.plan.append("SH: degree 0 (flat scene, no view dependence)")
-        self.gen = torch.Generator().manual_seed(int(cfg.seed))
+        self.gen = torch.Generator(device=self.device).manual_seed(int(cfg.seed))
         self.gaussians = self._init_gaussians()
         self.optimizer = GaussianOptimizer(self.gaussians, cfg.optim, self.extent, cfg.steps,
                                            trainable_groups(cfg.mode, self.max_sh_degree))
@@ -77,7 +85,7 @@ class Trainer:
         size_prune = cfg.densify.size_prune
         if size_prune is None:
             size_prune = SIZE_PRUNE_3DGS if cfg.mode == "3dgs" else SIZE_PRUNE_SOFTMAX_GS
-        self.strategy = make_strategy(cfg.densify, self.extent, size_prune, seed=cfg.seed)
+        self.strategy = make_strategy(cfg.densify, self.extent, size_prune, seed=cfg.seed, device=self.device)
         self.plan += self.strategy.describe()
         self.plan += self.strategy.initialize(self.gaussians, self.optimizer)
         self.reg_on = self.use_softmax and (cfg.loss.lambda_beta_var > 0 or cfg.loss.lambda_gamma_var > 0)
@@ -86,7 +94,8 @@ class Trainer:
             self.plan.append("beta/gamma variance regulariser: off" + (" (no softmax)" if not self.use_softmax else ""))
         self.plan.append(f"hyperparameters: {cfg.optim.name}")
         self.photometric = PhotometricLoss(cfg.loss.lambda_dssim)
-        self._targets = [v.rgb for v in scene.train]
+        self._targets = [v.rgb.to(self.device) for v in scene.train]
+        self.background = None if scene.background is None else scene.background.to(self.device, torch.float32)
         self._stack: list[int] = []
         self.step_count = 0          # steps completed
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0, "optim": 0.0, "strategy": 0.0}
@@ -94,32 +103,34 @@ class Trainer:
 
     # -- initialisation ----------------------------------------------------------------------
     def _init_gaussians(self) -> Gaussians:
-        gc, scene = self.cfg.gaussians, self.scene
+        gc, scene, dev = self.cfg.gaussians, self.scene, self.device
         how = gc.init
         if how == "auto":
             how = "sfm" if scene.points is not None else ("flat" if scene.flat else "random")
         if how == "sfm":
             if scene.points is None:
                 raise ValueError(f"init 'sfm' needs SfM points, but scene {scene.name!r} has none")
-            cols = scene.point_colors if scene.point_colors is not None else torch.full_like(scene.points, 0.5)
+            cols = scene.point_colors if scene.point_colors is not None else \
+                torch.full(tuple(scene.points.shape), 0.5, device=dev)
             self.plan.append(f"init: {scene.points.shape[0]} SfM points")
-            return Gaussians.from_points(scene.points, cols, gc, self.extent, self.max_sh_degree)
+            return Gaussians.from_points(scene.points, cols, gc, self.extent, self.max_sh_degree, device=dev)
         if how == "flat":
             cam = scene.train[0].camera
-            c2w = cam.camtoworld.double()
+            c2w = cam.to(dev).camtoworld.double()
             pts = flat_layout(gc.n_flat, gc.flat_depth, gc.flat_spacing, c2w[:3, 3], c2w[:3, :3],
-                              jitter=gc.flat_jitter, generator=self.gen)
-            cols = torch.tensor(gc.flat_color, dtype=torch.float32).expand(gc.n_flat, 3)
+                              jitter=gc.flat_jitter, generator=self.gen, device=dev)
+            cols = torch.tensor(gc.flat_color, dtype=torch.float32, device=dev).expand(gc.n_flat, 3)
             self.plan.append(f"init: {gc.n_flat} identical Gaussians at depth {gc.flat_depth:g}, "
                              f"{gc.flat_spacing:g} apart (jitter ±{gc.flat_jitter:g}), scale {gc.flat_scale:g} (no SfM)")
             return Gaussians.from_points(pts, cols, gc, self.extent, self.max_sh_degree,
-                                         scales=torch.full((gc.n_flat, 3), gc.flat_scale))
+                                         scales=torch.full((gc.n_flat, 3), gc.flat_scale, device=dev), device=dev)
         if how == "random":
             n = gc.n_random
-            pts = (torch.rand(n, 3, generator=self.gen, dtype=torch.float64) - 0.5) * gc.random_extent * self.extent
-            cols = torch.rand(n, 3, generator=self.gen)
+            pts = (torch.rand(n, 3, generator=self.gen, dtype=torch.float64, device=dev) - 0.5) \
+                * gc.random_extent * self.extent
+            cols = torch.rand(n, 3, generator=self.gen, device=dev)
             self.plan.append(f"init: {n} random points (no SfM)")
-            return Gaussians.from_points(pts.float(), cols, gc, self.extent, self.max_sh_degree)
+            return Gaussians.from_points(pts.float(), cols, gc, self.extent, self.max_sh_degree, device=dev)
         raise ValueError(f"unknown init {gc.init!r}; expected auto, sfm, flat or random")
 
     # -- rendering ---------------------------------------------------------------------------
@@ -145,7 +156,7 @@ class Trainer:
         else:
             sh, deg_arg = g.sh[:, :num_sh_bases(deg)], deg
         if background is None:
-            background = self.scene.background
+            background = self.background
         return rasterize(
             g.means, g.quats, g.scales, g.opacities, sh, camera,
             alpha=g.alpha if self.use_gef else None,
@@ -160,7 +171,7 @@ class Trainer:
     def _next_view(self) -> int:
         """3DGS's view stack: a fresh random permutation whenever it runs empty."""
         if not self._stack:
-            self._stack = torch.randperm(len(self.scene.train), generator=self.gen).tolist()
+            self._stack = torch.randperm(len(self.scene.train), generator=self.gen, device=self.device).tolist()
         return self._stack.pop()
 
     def check_finite(self, step: int, where: str = "") -> None:
@@ -191,7 +202,7 @@ class Trainer:
         target = self._targets[vi]
         bg = None
         if cfg.random_background:
-            bg = torch.rand(3, generator=self.gen)
+            bg = torch.rand(3, generator=self.gen, device=self.device)
         out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
         self.strategy.step_pre_backward(it, g, out)
         t1 = time.perf_counter()
@@ -253,7 +264,8 @@ class Trainer:
             "gaussians": self.gaussians.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "strategy": self.strategy.state_dict(),
-            "gen": self.gen.get_state(),
+            "gen": generator_state(self.gen),
+            "device": str(self.device),
             "view_stack": list(self._stack),
         }
 
@@ -268,7 +280,11 @@ class Trainer:
                 self.gaussians.params[n].requires_grad_(False)
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy.load_state_dict(state["strategy"])
-        self.gen.set_state(state["gen"])
+        if not restore_generator(self.gen, state["gen"], self.cfg.seed):
+            log.warning("resumed on %s from a checkpoint written on %s: the random generators cannot carry "
+                        "over between kinds of device and were re-seeded deterministically, so the rest of "
+                        "the run draws other views and samples than an uninterrupted run would",
+                        self.device, state.get("device", "another kind of device"))
         self._stack = list(state["view_stack"])
         self.step_count = int(state["step"])
 

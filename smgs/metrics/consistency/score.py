@@ -75,16 +75,24 @@ class ConsistencyScores:
         return d
 
 
+def _host(x) -> torch.Tensor:
+    """A render or image as a float tensor on the host, whatever device it was rendered on: the
+    flow estimators and FLIP work on numpy arrays."""
+    if isinstance(x, torch.Tensor):
+        return x.detach().float().cpu()
+    return torch.from_numpy(np.asarray(x, dtype=np.float32))
+
+
 def _to_frame(out, quantize: bool) -> Frame:
     if isinstance(out, (tuple, list)):
         rgb, depth = out[0], (out[1] if len(out) > 1 else None)
     else:  # a RenderOutput
         rgb, depth = out.rgb, out.depth
-    rgb_t = torch.as_tensor(rgb).detach().float().cpu()
+    rgb_t = _host(rgb)
     if rgb_t.dim() != 3 or rgb_t.shape[-1] != 3:
         raise ValueError(f"render must return rgb [H, W, 3], got {tuple(rgb_t.shape)}")
     rgb_t = quantize_8bit(rgb_t) if quantize else rgb_t.clamp(0, 1)
-    d = None if depth is None else torch.as_tensor(depth).detach().float().cpu().numpy().reshape(rgb_t.shape[:2])
+    d = None if depth is None else _host(depth).numpy().reshape(rgb_t.shape[:2])
     return Frame(np.ascontiguousarray(rgb_t.numpy()), d)
 
 
@@ -230,7 +238,7 @@ def mean_test_psnr(render: RenderFn, test_views: Sequence[tuple[Camera, torch.Te
         return Missing("no test views given")
     with torch.no_grad():
         preds = [_to_frame(render(cam), quantize=False).rgb for cam, _ in test_views]
-    res = evaluate_images([torch.from_numpy(p) for p in preds], [torch.as_tensor(g) for _, g in test_views],
+    res = evaluate_images([torch.from_numpy(p) for p in preds], [_host(g) for _, g in test_views],
                           lpips=Missing("not part of Table 4"), flip=False)
     return res.means()["psnr"]
 
