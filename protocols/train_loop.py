@@ -38,7 +38,9 @@ def method_config(cfg: dict) -> dict[str, Any]:
     mc = _merge(cfg["method"].get("train") or {}, cfg["dataset"].get("train") or {})
     budget = cfg["budget"]
     densify = dict(mc.get("densify") or {})
-    densify.update(budget=budget.get("preset", budget["name"]), grow_grad2d=budget["densify_grad_threshold"])
+    densify.update(budget=budget.get("preset", budget["name"]))
+    if budget.get("densify_grad_threshold") is not None:   # MCMC budgets have none
+        densify["grow_grad2d"] = budget["densify_grad_threshold"]
     if budget.get("cap") is not None:
         densify["cap"] = int(budget["cap"])
     own_steps = cfg["dataset"].get("steps")    # a dataset with its own step count has its own schedule
@@ -64,12 +66,13 @@ def scale_schedule(mc: dict[str, Any], steps: int, schedule_steps: int | None) -
     interval. Unscaled, a 3000-step run would reset every opacity to 0.01 at its last step."""
     if not schedule_steps or steps == int(schedule_steps):
         return
-    from smgs.train import DensifyConfig, TrainConfig
+    from smgs.train import BUDGETS, DensifyConfig, TrainConfig
 
     f = steps / int(schedule_steps)
-    d, defaults = mc["densify"], DensifyConfig()
+    d = mc["densify"]
+    defaults = {**vars(DensifyConfig()), **BUDGETS.get(d.get("budget"), {})}   # the preset's schedule
     for k in SCHEDULE_KEYS:
-        v = d.get(k, getattr(defaults, k))
+        v = d.get(k, defaults[k])
         if v is not None:
             d[k] = max(1, round(v * f))
     mc["sh_degree_interval"] = max(1, round(mc.get("sh_degree_interval", TrainConfig.sh_degree_interval) * f))

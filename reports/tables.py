@@ -291,7 +291,8 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
     sec.intro.append("Per dataset, the mean over scenes of each scene's test-view mean (seeds averaged first). "
                      "A mean is only over scenes that every row of the same preset ran; a mean over fewer "
                      "scenes than the dataset has is footnoted. Groups as in the paper: extreme sparse (5%), "
-                     "sparse (mini, light), dense (full). Best of a group in bold, second in italics.")
+                     "sparse (mini, light), dense (full, and MCMC at a cap: mcmc_<cap>). Best of a group in bold, "
+                     "second in italics.")
     for ds in sorted({r.dataset for r in real}, key=dataset_rank):
         dm = dataset_means(ds, real, T2_GETTERS)
         rows = []

@@ -77,8 +77,9 @@ def test_hparam_sets_are_named_and_distinct():
 
 
 def test_budget_presets():
-    assert {k: v["grow_grad2d"] for k, v in BUDGETS.items()} == \
-        {"full": 2e-4, "light": 3e-4, "mini": 5e-4, "5pct": 4e-3, "cap": 2e-4}
+    assert {k: v.get("grow_grad2d") for k, v in BUDGETS.items()} == \
+        {"full": 2e-4, "light": 3e-4, "mini": 5e-4, "5pct": 4e-3, "cap": 2e-4, "mcmc": None}
+    assert BUDGETS["mcmc"]["strategy"] == "mcmc" and densify_config("full").strategy == "default"
     assert densify_config("cap", cap=16).cap == 16
     with pytest.raises(ValueError, match="cap"):
         densify_config("cap")

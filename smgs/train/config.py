@@ -156,10 +156,16 @@ class DensifyConfig:
     this world-space 0.1 → 0.4 (relative to the scene extent), since GEF sharpening shrinks a
     splat's effective size. ``size_prune=None`` takes the method's default (0.1 for 3dgs, 0.4 for
     the Softmax-GS variants).
+
+    ``strategy`` picks the densification strategy (``smgs.train.strategies``): "default" (the
+    above) or "mcmc" (Kheradmand et al. 2024, ``smgs.train.mcmc``), which reads ``cap`` as its
+    ``cap_max``, the refinement schedule, ``prune_opacity`` as the dead-Gaussian threshold and the
+    ``mcmc_*`` fields; it ignores the gradient, clone/split, pruning and reset fields.
     """
 
     budget: str = "full"
     enabled: bool = True
+    strategy: Literal["default", "mcmc"] = "default"
     grow_grad2d: float = 2e-4
     cap: int | None = None
     percent_dense: float = 0.01
@@ -172,6 +178,14 @@ class DensifyConfig:
     refine_every: int = 100
     reset_every: int | None = 3000       # None: no opacity reset (2D patterns)
     reset_value: float = 0.01
+    # MCMC (3DGS-MCMC / gsplat MCMCStrategy defaults): growth per refinement, noise scale (× the
+    # position lr), noise gate sigmoid(-k (o - t)), L1 weights on opacities and scales.
+    mcmc_grow_rate: float = 0.05
+    mcmc_noise_lr: float = 5e5
+    mcmc_gate_k: float = 100.0
+    mcmc_gate_t: float = 0.005
+    mcmc_opacity_reg: float = 0.01
+    mcmc_scale_reg: float = 0.01
 
 
 BUDGETS: dict[str, dict[str, Any]] = {
@@ -180,6 +194,8 @@ BUDGETS: dict[str, dict[str, Any]] = {
     "mini": dict(grow_grad2d=5e-4),       # Softmax-GS_mini
     "5pct": dict(grow_grad2d=4e-3),       # 3DGS_5% / Softmax-GS_5%
     "cap": dict(grow_grad2d=2e-4),        # a hard maximum count (set ``cap``)
+    # 3DGS-MCMC at a hard cap (set ``cap``): refinement 500..25K every 100 (paper, gsplat), no reset.
+    "mcmc": dict(strategy="mcmc", refine_stop=25_000, reset_every=None),
 }
 
 
@@ -188,8 +204,10 @@ def densify_config(budget: str = "full", **overrides: Any) -> DensifyConfig:
     if budget not in BUDGETS:
         raise ValueError(f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
     cfg = DensifyConfig(budget=budget, **{**BUDGETS[budget], **overrides})
-    if budget == "cap" and not cfg.cap:
-        raise ValueError("budget 'cap' needs cap=<maximum number of Gaussians>")
+    if budget in ("cap", "mcmc") and not cfg.cap:
+        raise ValueError(f"budget {budget!r} needs cap=<maximum number of Gaussians>")
+    if cfg.strategy not in ("default", "mcmc"):
+        raise ValueError(f"unknown densification strategy {cfg.strategy!r}; expected 'default' or 'mcmc'")
     return cfg
 
 

@@ -154,6 +154,20 @@ class GaussianOptimizer:
         for name in PARAM_NAMES:
             self._swap(name, self.g.params[name].detach()[mask], lambda m: m[mask])
 
+    @torch.no_grad()
+    def set_rows(self, rows: torch.Tensor, values: dict[str, torch.Tensor]) -> None:
+        """Write ``values[name]`` into rows ``rows`` of the named groups (in place), then zero the
+        Adam moments of those rows in every group (MCMC relocation: a moved Gaussian starts its
+        moments afresh)."""
+        for name, v in values.items():
+            p = self.g.params[name]
+            p[rows] = v.to(p.dtype)
+        for name in self.names:
+            st = self.opt.state.get(self.g.params[name])
+            for k in ("exp_avg", "exp_avg_sq"):
+                if st and k in st:
+                    st[k][rows] = 0
+
     def reset(self, name: str, value: torch.Tensor) -> None:
         """Replace a whole group's values and zero its Adam moments (3DGS
         ``replace_tensor_to_optimizer``, used by the opacity reset)."""

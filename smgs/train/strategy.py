@@ -38,6 +38,11 @@ class RefineEvent:
     pruned: int = 0
     reset: bool = False
     capped: int = 0          # candidates dropped because of the cap
+    relocated: int = 0       # MCMC: dead Gaussians moved onto live ones
+    added: int = 0           # MCMC: Gaussians added by growth
+
+    def changed(self) -> bool:
+        return bool(self.cloned or self.split or self.pruned or self.reset or self.relocated or self.added)
 
 
 class DefaultStrategy:
@@ -45,7 +50,10 @@ class DefaultStrategy:
 
     ``size_prune`` is the resolved world-space size threshold (relative to the extent); ``device``
     the run's device (statistics and the split samples' generator live there).
+    Implements ``smgs.train.strategies.Strategy``.
     """
+
+    kind = "default"
 
     def __init__(self, cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0, *,
                  device: torch.device | str) -> None:
@@ -77,6 +85,38 @@ class DefaultStrategy:
         spend their whole run so). ``RefineEvent.capped`` then reports 0."""
         c = self.cfg
         return c.cap is None or n < c.cap or c.reset_every is not None
+
+    # -- the Strategy interface -------------------------------------------------------------
+    def describe(self) -> list[str]:
+        c = self.cfg
+        if not c.enabled:
+            return ["densification: off (fixed count)"]
+        return [f"densification: budget {c.budget} (grad {c.grow_grad2d:g}{', cap ' + str(c.cap) if c.cap else ''}), "
+                f"steps {c.refine_start}-{c.refine_stop} every {c.refine_every}",
+                "opacity reset: off; size pruning: off (only after a reset)" if c.reset_every is None
+                else f"opacity reset every {c.reset_every}; size pruning {self.size_prune:g} x extent "
+                     f"and {c.prune_screen_px:g} px after the first reset"]
+
+    def initialize(self, g: Gaussians, opt: GaussianOptimizer) -> list[str]:
+        return []
+
+    def step_pre_backward(self, iteration: int, g: Gaussians, out) -> None:
+        """Keep the screen-space mean gradients of this render when they can be used."""
+        means2d = out.extras["means2d"]
+        if self.active(iteration) and self.wants_stats(len(g)) and means2d.requires_grad:
+            means2d.retain_grad()
+
+    def regularizer(self, iteration: int, g: Gaussians) -> None:
+        return None
+
+    def step_post_backward(self, iteration: int, g: Gaussians, opt: GaussianOptimizer, out, camera,
+                           lr_means: float) -> RefineEvent | None:
+        if not self.active(iteration):
+            return None
+        if self.wants_stats(len(g)):
+            self.accumulate(len(g), out.extras["ids"], out.extras["means2d"].grad, out.extras["radii"],
+                            camera.width, camera.height)
+        return self.step(iteration, g, opt)
 
     # -- per step ----------------------------------------------------------------------------
     @torch.no_grad()
@@ -185,6 +225,9 @@ class DefaultStrategy:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore onto this strategy's device; the generator as ``smgs.device.restore_generator``."""
+        if state.get("kind", self.kind) != self.kind:
+            raise ValueError(f"checkpoint has the {state['kind']!r} densification strategy's state, this run "
+                             f"uses {self.kind!r} (densify.strategy)")
         self.grad2d = state["grad2d"].to(self.device, copy=True)
         self.count = state["count"].to(self.device, copy=True)
         self.max_radii = state["max_radii"].to(self.device, copy=True)

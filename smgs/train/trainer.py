@@ -26,7 +26,8 @@ from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
 from smgs.train.image_loss import PhotometricLoss, ray_variance
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
+from smgs.train.strategies import make_strategy
+from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
 
 log = logging.getLogger(__name__)
 
@@ -98,17 +99,9 @@ class Trainer:
         size_prune = cfg.densify.size_prune
         if size_prune is None:
             size_prune = SIZE_PRUNE_3DGS if cfg.mode == "3dgs" else SIZE_PRUNE_SOFTMAX_GS
-        self.strategy = DefaultStrategy(cfg.densify, self.extent, size_prune, seed=cfg.seed, device=self.device)
-        d = cfg.densify
-        if not d.enabled:
-            self.plan.append("densification: off (fixed count)")
-        else:
-            self.plan.append(f"densification: budget {d.budget} (grad {d.grow_grad2d:g}"
-                             f"{', cap ' + str(d.cap) if d.cap else ''}), steps {d.refine_start}-{d.refine_stop}"
-                             f" every {d.refine_every}")
-            self.plan.append("opacity reset: off; size pruning: off (only after a reset)" if d.reset_every is None
-                             else f"opacity reset every {d.reset_every}; size pruning {size_prune:g} x extent "
-                                  f"and {d.prune_screen_px:g} px after the first reset")
+        self.strategy = make_strategy(cfg.densify, self.extent, size_prune, seed=cfg.seed, device=self.device)
+        self.plan += self.strategy.describe()
+        self.plan += self.strategy.initialize(self.gaussians, self.optimizer)
         self.reg_on = self.use_softmax and (cfg.loss.lambda_beta_var > 0 or cfg.loss.lambda_gamma_var > 0)
         self.reg_depth_scale = cfg.loss.reg_depth_scale_rel * self.extent
         if not self.reg_on:
@@ -229,11 +222,7 @@ class Trainer:
         except NonFiniteInputError:
             self.check_finite(self.step_count, "before the step")  # names the parameter group
             raise
-        track = self.strategy.active(it)
-        stats = track and self.strategy.wants_stats(len(g))
-        means2d = out.extras["means2d"]
-        if stats and means2d.requires_grad:
-            means2d.retain_grad()
+        self.strategy.step_pre_backward(it, g, out)
         t1 = time.perf_counter()
         rgb = out.rgb
         parts = self.photometric(rgb, target)   # (1 − λ)·L1 + λ·(1 − SSIM), with L1, SSIM and MSE
@@ -242,6 +231,9 @@ class Trainer:
         if self.reg_on and out.reg is not None:
             var_b, var_g = ray_variance(out.reg)
             loss = loss + cfg.loss.lambda_beta_var * var_b + cfg.loss.lambda_gamma_var * var_g
+        reg = self.strategy.regularizer(it, g)
+        if reg is not None:
+            loss = loss + reg
         loss_v = float(loss.detach())
         if not math.isfinite(loss_v):
             self.check_finite(self.step_count, "before the step")
@@ -259,12 +251,7 @@ class Trainer:
                 "" if every == 1 else f" (checked every {every} steps: it appeared at step "
                                       f"{max(self.step_count - every + 1, 0)} or later)"))
         t4 = time.perf_counter()
-        ev = None
-        if track:
-            if stats:
-                self.strategy.accumulate(len(g), out.extras["ids"], means2d.grad, out.extras["radii"],
-                                         view.camera.width, view.camera.height)
-            ev = self.strategy.step(it, g, self.optimizer)
+        ev = self.strategy.step_post_backward(it, g, self.optimizer, out, view.camera, lr)
         self.optimizer.zero_grad()
         t5 = time.perf_counter()
         if prof:
@@ -278,9 +265,11 @@ class Trainer:
                 "num_gaussians": float(len(g)), "lr_means": lr}
         if var_b is not None:
             logs["var_beta"], logs["var_gamma"] = float(var_b.detach()), float(var_g.detach())
-        if ev is not None and (ev.cloned or ev.split or ev.pruned or ev.reset):
+        if ev is not None and ev.changed():
             logs.update(cloned=float(ev.cloned), split=float(ev.split), pruned=float(ev.pruned),
                         opacity_reset=float(ev.reset))
+            if ev.relocated or ev.added:
+                logs.update(relocated=float(ev.relocated), added=float(ev.added))
         return logs
 
     # -- checkpoints -------------------------------------------------------------------------
