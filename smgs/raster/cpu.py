@@ -1,10 +1,18 @@
-"""Compiled CPU backend (C++/OpenMP, SIMD over the pixels of a tile): forward and hand-written backward.
+"""Compiled CPU backend (C++, SIMD over the pixels of a tile, threads over tiles): forward and
+hand-written backward.
 
 Built just in time with ``torch.utils.cpp_extension.load`` on first use and cached by PyTorch (in
 ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``); later processes load the cached
-library in well under a second. The sources are ``csrc/cpu_kernel.cpp`` and ``csrc/splat_math.h``
-(the per-splat math shared with other compiled backends). Same images and gradients as
-``smgs.raster.reference`` to float32 rounding (tests/test_raster_cpu.py states the tolerances).
+library in well under a second. The sources are ``csrc/cpu_kernel.cpp`` (torch glue, binning, sort)
+and the compositing core ``csrc/cpu_{fwd,bwd,bwd_soft}.cpp`` over ``cpu_tiles.h``, with the SIMD
+layer ``simd.h``, the threads ``parallel.h`` and the per-splat math ``splat_math.h`` (shared with the
+CUDA backend). Same images and gradients as ``smgs.raster.reference`` to float32 rounding
+(tests/test_raster_cpu.py states the tolerances).
+
+SIMD path: avx512, avx2 (x86-64-v3), neon (aarch64) or scalar, the best the host runs unless
+``SMGS_CPU_ISA`` names one (``isa()`` says which is in use). The renderer's threads are its own
+(``torch.get_num_threads()`` of them, blocking waits); the projection and loss kernels use torch's
+pool and need OpenMP for more than one thread (``openmp_flags``). ``t_min`` is a run-time argument.
 
 Set ``SMGS_DISABLE_CPU_BACKEND=1`` to make ``is_available()`` report False (``auto`` then falls back
 to the reference).
@@ -140,7 +148,8 @@ def openmp_flags() -> tuple[list[str], list[str], str]:
                     return cflags, ldflags, what
             except (OSError, subprocess.SubprocessError):
                 break
-    log.warning("smgs: %s has no OpenMP here: the compiled CPU kernels run on one thread", cxx)
+    log.warning("smgs: %s has no OpenMP here: the compiled projection and loss kernels run on one "
+                "thread (the renderer has its own threads)", cxx)
     return [], [], "no OpenMP (one thread)"
 
 

@@ -28,11 +28,9 @@
 #include <limits>
 #include <vector>
 
-#ifdef _OPENMP
-#include <omp.h>
-#endif
 
 #include "cpu_core.h"
+#include "parallel.h"
 
 namespace smgs {
 
@@ -128,12 +126,11 @@ static Prepared prepare(const at::Tensor& means2d, const at::Tensor& conics, con
   const float* dp = depths.data_ptr<float>();
   std::vector<int32_t> box(size_t(4) * N);
   std::vector<char> vis(N);
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-  for (int64_t i = 0; i < N; ++i) {
+  parallel_static(nthreads, N, [&](int64_t i) {
     // a <= o·1, so o < 1/255 never reaches (NaN never reaches either)
     vis[i] = (op[i] >= kAlphaMin) &&
              splat_box(m2[2 * i], m2[2 * i + 1], cn[3 * i], cn[3 * i + 1], cn[3 * i + 2], W, H, &box[4 * i]);
-  }
+  });
   int ib = 1;
   while ((int64_t(1) << ib) < N) ++ib;
   std::vector<uint64_t> keys;
@@ -156,8 +153,7 @@ static Prepared prepare(const at::Tensor& means2d, const at::Tensor& conics, con
   const float* be = beta.numel() ? beta.data_ptr<float>() : nullptr;
   const float* ga = gamma.numel() ? gamma.data_ptr<float>() : nullptr;
   const float* rv = R ? regv.data_ptr<float>() : nullptr;
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-  for (int64_t j = 0; j < M; ++j) {
+  parallel_static(nthreads, M, [&](int64_t j) {
     int64_t i = int64_t(keys[j] & imask);
     ids[j] = int32_t(i);
     float* r = pk + j * S;
@@ -174,7 +170,7 @@ static Prepared prepare(const at::Tensor& means2d, const at::Tensor& conics, con
     for (int c = 0; c < nch; ++c) r[P_COL + c] = col[i * nch + c];
     for (int c = 0; c < R; ++c) r[P_COL + nch + c] = rv[i * R + c];
     for (int c = 0; c < 4; ++c) bx[4 * j + c] = box[4 * i + c];
-  }
+  });
   const int tx = (W + kTileSize - 1) / kTileSize, ty = (H + kTileSize - 1) / kTileSize;
   P.toff = at::zeros({int64_t(tx) * ty + 1}, i32);
   int32_t* toff = P.toff.data_ptr<int32_t>();
@@ -311,11 +307,10 @@ std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tenso
         *pcol = gcol.data_ptr<float>(), *pd = gd.data_ptr<float>(), *pal = gal.data_ptr<float>(),
         *pbe = gbe.data_ptr<float>(), *pga = gga.data_ptr<float>(), *prv = R ? grv.data_ptr<float>() : nullptr;
   const int M = sc.M;
-#pragma omp parallel num_threads(sc.nthreads)
-  {
+  // contiguous chunks of splats, one gradient row of scratch per chunk
+  parallel_dynamic(sc.nthreads, (M + 4095) / 4096, [&](int, int64_t chunk) {
     std::vector<float> r(S);
-#pragma omp for schedule(static)
-    for (int j = 0; j < M; ++j) {
+    for (int j = int(chunk) * 4096, je = std::min(M, j + 4096); j < je; ++j) {
       std::fill(r.begin(), r.end(), 0.f);
       for (int k = so[j]; k < so[j + 1]; ++k) {
         const float* e = Ep + size_t(sp[k]) * Sp;
@@ -335,7 +330,7 @@ std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tenso
       for (int c = 0; c < nch; ++c) pcol[i * nch + c] = r[P_COL + c];
       for (int c = 0; c < R; ++c) prv[i * R + c] = r[P_COL + nch + c];
     }
-  }
+  });
   return {gm, gc, go, gcol, gd, gal, gbe, gga, grv};
 }
 

@@ -1,9 +1,10 @@
-// Compositing core of the compiled CPU renderer as templates over the mode (GEF, SOFT) and the
+// Compositing core of the compiled CPU renderer (threads over tiles: parallel.h) as templates over the mode (GEF, SOFT) and the
 // channel count (NCT = 3 keeps the colour state in registers; 0 = any count, in scratch). Included
 // only by the core's translation units (cpu_fwd.cpp, cpu_bwd.cpp, cpu_bwd_soft.cpp).
 #pragma once
 
 #include "cpu_core.h"
+#include "parallel.h"
 #include "simd.h"
 
 namespace smgs {
@@ -258,23 +259,23 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
 template <bool GEF, bool SOFT, int NCT>
 static int64_t forward_impl(const Scene& sc, const FwdOut& o) {
   const int nt = sc.tiles_x * sc.tiles_y;
-  int64_t pairs = 0;
-#pragma omp parallel num_threads(sc.nthreads) reduction(+ : pairs)
-  {
-    BlockLists bl;
-    Scratch scr;
-#pragma omp for schedule(dynamic, 1)
-    for (int t = 0; t < nt; ++t) {
-      build_block_lists(sc, t, bl);
-      const int tx0 = (t % sc.tiles_x) * kTileSize, ty0 = (t / sc.tiles_x) * kTileSize;
-      for (int b = 0; b < kNB; ++b) {
-        const int x0 = tx0 + (b % kBX) * kBW, y0 = ty0 + (b / kBX) * 4;
-        if (x0 >= sc.W || y0 >= sc.H) continue;
-        pairs += fwd_block<GEF, SOFT, NCT>(sc, bl.rows.data(), bl.Sp, bl.list(b), bl.count[b], x0, y0, o, scr);
-      }
+  const int nw = workers(sc.nthreads, nt);
+  std::vector<BlockLists> bl(nw);
+  std::vector<Scratch> scr(nw);
+  std::vector<int64_t> pairs(nw, 0);
+  parallel_dynamic(sc.nthreads, nt, [&](int w, int64_t t) {
+    build_block_lists(sc, int(t), bl[w]);
+    const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
+    for (int b = 0; b < kNB; ++b) {
+      const int x0 = tx0 + (b % kBX) * kBW, y0 = ty0 + (b / kBX) * 4;
+      if (x0 >= sc.W || y0 >= sc.H) continue;
+      pairs[w] += fwd_block<GEF, SOFT, NCT>(sc, bl[w].rows.data(), bl[w].Sp, bl[w].list(b), bl[w].count[b], x0, y0,
+                                            o, scr[w]);
     }
-  }
-  return pairs;
+  });
+  int64_t total = 0;
+  for (int64_t p : pairs) total += p;
+  return total;
 }
 
 // ---- backward --------------------------------------------------------------------------------------
@@ -579,25 +580,23 @@ template <bool GEF, bool SOFT, int NCT>
 static void backward_impl(const Scene& sc, const BwdIn& in, float* E) {
   const int nt = sc.tiles_x * sc.tiles_y;
   const int Sp = padded(sc.S);
-#pragma omp parallel num_threads(sc.nthreads)
-  {
-    BlockLists bl;
-    Scratch scr;
-    HeadScratch hs;
-#pragma omp for schedule(dynamic, 1)
-    for (int t = 0; t < nt; ++t) {
-      const int off = sc.toff[t];
-      float* G = E + size_t(off) * Sp;
-      std::fill(G, G + size_t(sc.toff[t + 1] - off) * Sp, 0.f);
-      build_block_lists(sc, t, bl);
-      const int tx0 = (t % sc.tiles_x) * kTileSize, ty0 = (t / sc.tiles_x) * kTileSize;
-      for (int b = 0; b < kNB; ++b) {
-        const int x0 = tx0 + (b % kBX) * kBW, y0 = ty0 + (b / kBX) * 4;
-        if (x0 >= sc.W || y0 >= sc.H) continue;
-        bwd_block<GEF, SOFT, NCT>(sc, bl.rows.data(), bl.Sp, bl.list(b), bl.count[b], x0, y0, in, G, scr, hs);
-      }
+  const int nw = workers(sc.nthreads, nt);
+  std::vector<BlockLists> bl(nw);
+  std::vector<Scratch> scr(nw);
+  std::vector<HeadScratch> hs(nw);
+  parallel_dynamic(sc.nthreads, nt, [&](int w, int64_t t) {
+    const int off = sc.toff[t];
+    float* G = E + size_t(off) * Sp;
+    std::fill(G, G + size_t(sc.toff[t + 1] - off) * Sp, 0.f);
+    build_block_lists(sc, int(t), bl[w]);
+    const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
+    for (int b = 0; b < kNB; ++b) {
+      const int x0 = tx0 + (b % kBX) * kBW, y0 = ty0 + (b / kBX) * 4;
+      if (x0 >= sc.W || y0 >= sc.H) continue;
+      bwd_block<GEF, SOFT, NCT>(sc, bl[w].rows.data(), bl[w].Sp, bl[w].list(b), bl[w].count[b], x0, y0, in, G, scr[w],
+                                hs[w]);
     }
-  }
+  });
 }
 
 template <bool GEF, bool SOFT>
