@@ -3,10 +3,10 @@
 // build time (smgs/raster/cpu.py passes -DSMGS_ISA_<path> with that path's compiler flags):
 //
 //   avx512  one __m512 per VF, __mmask16 masks; rcp14/rsqrt14, scalef, getexp/getmant
-//   avx2    x86-64-v3 (AVX2 + FMA): a GCC/Clang 64-byte vector, lowered to two __m256; the few
-//           operations the vector extension lacks (sqrt, rcp, masks as bits, reductions) by intrinsics
-//   neon    aarch64 Advanced SIMD: the same vector, lowered to four float32x4_t; intrinsics likewise
-//   scalar  no intrinsics and no ISA flags: the same vector as the compiler lowers it for the
+//   avx2    x86-64-v3 (AVX2 + FMA): two 8-float GCC/Clang vectors (two __m256); the few operations
+//           the vector extension lacks (fma, sqrt, rcp, masks as bits, reductions) by intrinsics
+//   neon    aarch64 Advanced SIMD: four 4-float vectors (float32x4_t); intrinsics likewise
+//   scalar  no intrinsics and no ISA flags: four 4-float vectors as the compiler lowers them for the
 //           architecture's baseline (SSE2 on x86-64), exact divide and square root
 //
 // exp and log are one polynomial each (Cephes expf / logf) on every path, never a libm call per lane.
@@ -196,41 +196,89 @@ SMGS_FI VF reduce16(const VF* v) {
 }
 
 #else
-// ---- avx2 / neon / scalar: one 64-byte GCC/Clang vector ---------------------------------------------
-typedef float F16v __attribute__((vector_size(64)));
-typedef int32_t I16v __attribute__((vector_size(64)));
+// ---- avx2 / neon / scalar: kK native-width GCC/Clang vectors ------------------------------------
+// Each VF is kK registers of the target's width (a single 64-byte vector would be lowered through
+// memory where the target has no 64-byte registers: measured 7x slower on avx2).
+#if defined(SMGS_ISA_AVX2)
+constexpr int kW = 8;  // one __m256
+#else
+constexpr int kW = 4;  // one float32x4_t (neon), one SSE2 register (scalar on x86-64)
+#endif
+constexpr int kK = kLanes / kW;
+typedef float FN __attribute__((vector_size(4 * kW)));
+typedef int32_t IN __attribute__((vector_size(4 * kW)));
 
 struct VM {
-  I16v m;  // all ones (true) or zero per lane, as vector comparisons give
+  IN m[kK];  // all ones (true) or zero per lane, as vector comparisons give
 };
 struct VF {
-  F16v v;
+  FN v[kK];
   VF() = default;
-  VF(F16v x) : v(x) {}
-  VF(float x) : v(F16v{} + x) {}
+  VF(float x) {
+    for (int k = 0; k < kK; ++k) v[k] = FN{} + x;
+  }
 };
-SMGS_FI VF operator+(VF a, VF b) { return a.v + b.v; }
-SMGS_FI VF operator-(VF a, VF b) { return a.v - b.v; }
-SMGS_FI VF operator*(VF a, VF b) { return a.v * b.v; }
-SMGS_FI VF operator/(VF a, VF b) { return a.v / b.v; }
-SMGS_FI VF operator-(VF a) { return -a.v; }
-SMGS_FI VM operator<(VF a, VF b) { return {a.v < b.v}; }
-SMGS_FI VM operator<=(VF a, VF b) { return {a.v <= b.v}; }
-SMGS_FI VM operator>(VF a, VF b) { return {a.v > b.v}; }
-SMGS_FI VM operator>=(VF a, VF b) { return {a.v >= b.v}; }
-SMGS_FI VM operator==(VF a, VF b) { return {a.v == b.v}; }
-SMGS_FI VM operator!=(VF a, VF b) { return {a.v != b.v}; }
-SMGS_FI VM mand(VM a, VM b) { return {a.m & b.m}; }
-SMGS_FI VM mor(VM a, VM b) { return {a.m | b.m}; }
-SMGS_FI VM mnot(VM a) { return {~a.m}; }
+#define SMGS_VBIN(op)                                   \
+  SMGS_FI VF operator op(VF a, VF b) {                  \
+    VF r;                                               \
+    for (int k = 0; k < kK; ++k) r.v[k] = a.v[k] op b.v[k]; \
+    return r;                                           \
+  }
+SMGS_VBIN(+)
+SMGS_VBIN(-)
+SMGS_VBIN(*)
+SMGS_VBIN(/)
+#undef SMGS_VBIN
+#define SMGS_VCMP(op)                                   \
+  SMGS_FI VM operator op(VF a, VF b) {                  \
+    VM r;                                               \
+    for (int k = 0; k < kK; ++k) r.m[k] = a.v[k] op b.v[k]; \
+    return r;                                           \
+  }
+SMGS_VCMP(<)
+SMGS_VCMP(<=)
+SMGS_VCMP(>)
+SMGS_VCMP(>=)
+SMGS_VCMP(==)
+SMGS_VCMP(!=)
+#undef SMGS_VCMP
+SMGS_FI VF operator-(VF a) {
+  for (int k = 0; k < kK; ++k) a.v[k] = -a.v[k];
+  return a;
+}
+SMGS_FI VM mand(VM a, VM b) {
+  for (int k = 0; k < kK; ++k) a.m[k] &= b.m[k];
+  return a;
+}
+SMGS_FI VM mor(VM a, VM b) {
+  for (int k = 0; k < kK; ++k) a.m[k] |= b.m[k];
+  return a;
+}
+SMGS_FI VM mnot(VM a) {
+  for (int k = 0; k < kK; ++k) a.m[k] = ~a.m[k];
+  return a;
+}
 // a bitwise blend (the lane masks are all ones or zero): what every target lowers well
+SMGS_FI FN seln(IN m, FN a, FN b) { return (FN)((m & (IN)a) | (~m & (IN)b)); }
 SMGS_FI VF sel(VM m, VF a, VF b) {
-  return (F16v)((m.m & (I16v)a.v) | (~m.m & (I16v)b.v));
+  for (int k = 0; k < kK; ++k) a.v[k] = seln(m.m[k], a.v[k], b.v[k]);
+  return a;
 }
 // min/max with a constant second argument; a NaN first argument propagates (as torch.clamp)
-SMGS_FI VF min_c(VF x, VF c) { return sel({c.v < x.v}, c, x); }
-SMGS_FI VF max_c(VF x, VF c) { return sel({c.v > x.v}, c, x); }
-SMGS_FI VF vabs(VF x) { return (F16v)((I16v)x.v & 0x7FFFFFFF); }
+SMGS_FI FN minn(FN x, FN c) { return seln(c < x, c, x); }
+SMGS_FI FN maxn(FN x, FN c) { return seln(c > x, c, x); }
+SMGS_FI VF min_c(VF x, VF c) {
+  for (int k = 0; k < kK; ++k) x.v[k] = minn(x.v[k], c.v[k]);
+  return x;
+}
+SMGS_FI VF max_c(VF x, VF c) {
+  for (int k = 0; k < kK; ++k) x.v[k] = maxn(x.v[k], c.v[k]);
+  return x;
+}
+SMGS_FI VF vabs(VF x) {
+  for (int k = 0; k < kK; ++k) x.v[k] = (FN)((IN)x.v[k] & 0x7FFFFFFF);
+  return x;
+}
 SMGS_FI VF load(const float* p) {
   VF r;
   std::memcpy(&r.v, p, sizeof r.v);
@@ -238,49 +286,95 @@ SMGS_FI VF load(const float* p) {
 }
 SMGS_FI void store(float* p, VF x) { std::memcpy(p, &x.v, sizeof x.v); }
 
+// per-register primitives: fused multiply-add, square root, reciprocal, lane bits
 #if defined(SMGS_ISA_AVX2)
-// The two 256-bit halves: register names under -mavx2, no instructions.
-SMGS_FI __m256 lo(VF x) { return __builtin_shufflevector(x.v, x.v, 0, 1, 2, 3, 4, 5, 6, 7); }
-SMGS_FI __m256 hi(VF x) { return __builtin_shufflevector(x.v, x.v, 8, 9, 10, 11, 12, 13, 14, 15); }
-SMGS_FI VF join(__m256 a, __m256 b) {
-  return VF(__builtin_shufflevector(a, b, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
-}
-SMGS_FI VF fmadd(VF a, VF b, VF c) {
-  return join(_mm256_fmadd_ps(lo(a), lo(b), lo(c)), _mm256_fmadd_ps(hi(a), hi(b), hi(c)));
-}
-SMGS_FI VF vsqrt(VF x) { return join(_mm256_sqrt_ps(lo(x)), _mm256_sqrt_ps(hi(x))); }
+SMGS_FI FN fman(FN a, FN b, FN c) { return (FN)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c); }
+SMGS_FI FN sqrtn(FN x) { return (FN)_mm256_sqrt_ps((__m256)x); }
 // rcp_ps has 12 bits: one Newton step leaves ~1.9 ulp, which the deep softmax stacks of the stiff
 // battery see; r·(1 + e + e²) with e = 1 - x·r (one FMA more) is good to ~0.5 ulp, as rcp14 + Newton.
-SMGS_FI __m256 rcp8(__m256 x) {
-  const __m256 r = _mm256_rcp_ps(x);
-  const __m256 e = _mm256_fnmadd_ps(x, r, _mm256_set1_ps(1.0f));
-  return _mm256_fmadd_ps(r, _mm256_fmadd_ps(e, e, e), r);
+SMGS_FI FN rcpn(FN x) {
+  const __m256 r = _mm256_rcp_ps((__m256)x);
+  const __m256 e = _mm256_fnmadd_ps((__m256)x, r, _mm256_set1_ps(1.0f));
+  return (FN)_mm256_fmadd_ps(r, _mm256_fmadd_ps(e, e, e), r);
 }
-SMGS_FI VF vrcp(VF x) { return join(rcp8(lo(x)), rcp8(hi(x))); }
+SMGS_FI unsigned bitsn(IN m) { return unsigned(_mm256_movemask_ps((__m256)m)); }
+#elif defined(SMGS_ISA_NEON)
+SMGS_FI FN fman(FN a, FN b, FN c) { return (FN)vfmaq_f32((float32x4_t)c, (float32x4_t)a, (float32x4_t)b); }
+SMGS_FI FN sqrtn(FN x) { return (FN)vsqrtq_f32((float32x4_t)x); }
+SMGS_FI FN rcpn(FN x) { return 1.0f / x; }
+SMGS_FI unsigned bitsn(IN m) {
+  const uint32x4_t w = {1u, 2u, 4u, 8u};
+  return vaddvq_u32(vandq_u32((uint32x4_t)m, w));
+}
+#else  // scalar
+SMGS_FI FN fman(FN a, FN b, FN c) { return a * b + c; }  // no FMA in the baseline ISA: two roundings
+SMGS_FI FN sqrtn(FN x) {
+  for (int i = 0; i < kW; ++i) x[i] = std::sqrt(x[i]);
+  return x;
+}
+SMGS_FI FN rcpn(FN x) { return 1.0f / x; }
+SMGS_FI unsigned bitsn(IN m) {
+  unsigned r = 0;
+  for (int i = 0; i < kW; ++i) r |= unsigned(m[i] & 1) << i;
+  return r;
+}
+#endif
+
+SMGS_FI VF fmadd(VF a, VF b, VF c) {
+  for (int k = 0; k < kK; ++k) a.v[k] = fman(a.v[k], b.v[k], c.v[k]);
+  return a;
+}
+SMGS_FI VF vsqrt(VF x) {
+  for (int k = 0; k < kK; ++k) x.v[k] = sqrtn(x.v[k]);
+  return x;
+}
 SMGS_FI VF vsqrt_pos(VF x) { return vsqrt(x); }  // one per softmax step: the exact root costs little
+SMGS_FI VF vrcp(VF x) {
+  for (int k = 0; k < kK; ++k) x.v[k] = rcpn(x.v[k]);
+  return x;
+}
 SMGS_FI unsigned bits(VM m) {
-  const VF f((F16v)m.m);
-  return unsigned(_mm256_movemask_ps(lo(f))) | (unsigned(_mm256_movemask_ps(hi(f))) << 8);
+  unsigned r = 0;
+  for (int k = 0; k < kK; ++k) r |= bitsn(m.m[k]) << (kW * k);
+  return r;
 }
 SMGS_FI bool any(VM m) {
-  const VF f((F16v)m.m);
-  return !_mm256_testz_ps(_mm256_or_ps(lo(f), hi(f)), _mm256_castsi256_ps(_mm256_set1_epi32(-1)));
+  IN o = m.m[0];
+  for (int k = 1; k < kK; ++k) o |= m.m[k];
+  return bitsn(o) != 0;
 }
-// 16 vectors' lane sums as one vector: a transposing tree (the first level only renames halves).
+SMGS_FI bool all(VM m) { return bits(m) == 0xFFFFu; }
+SMGS_FI int popcount(VM m) { return __builtin_popcount(bits(m)); }
+SMGS_FI VM mask_from_bits(unsigned b) {
+  VM r;
+  for (int k = 0; k < kK; ++k) {
+    IN lane;
+    for (int i = 0; i < kW; ++i) lane[i] = 1 << (kW * k + i);
+    r.m[k] = (lane & int32_t(b)) != 0;
+  }
+  return r;
+}
+SMGS_FI float hsum(VF x) {
+  FN s = x.v[0];
+  for (int k = 1; k < kK; ++k) s += x.v[k];
+  float t = 0.f;
+  for (int i = 0; i < kW; ++i) t += s[i];
+  return t;
+}
+
+#if defined(SMGS_ISA_AVX2)
+// 16 vectors' lane sums as one vector: a transposing tree (the first level only adds halves).
 SMGS_FI VF reduce16(const VF* v) {
   __m256 t[8][2];
-  for (int i = 0; i < 8; ++i) {  // t[i] = [8 partials of v[2i] | 8 partials of v[2i+1]]
-    t[i][0] = _mm256_add_ps(lo(v[2 * i]), hi(v[2 * i]));
-    t[i][1] = _mm256_add_ps(lo(v[2 * i + 1]), hi(v[2 * i + 1]));
+  for (int i = 0; i < 8; ++i) {  // t[i][h] = 8 partial sums of v[2i+h]
+    t[i][0] = _mm256_add_ps((__m256)v[2 * i].v[0], (__m256)v[2 * i].v[1]);
+    t[i][1] = _mm256_add_ps((__m256)v[2 * i + 1].v[0], (__m256)v[2 * i + 1].v[1]);
   }
-  // from here on each 256-bit register holds one vector's partials per 128-bit lane:
-  // u[i] = [4 of v[4i] | 4 of v[4i+1]], [4 of v[4i+2] | 4 of v[4i+3]]
   __m256 u[4][2];
   for (int i = 0; i < 4; ++i)
     for (int h = 0; h < 2; ++h)
       u[i][h] = _mm256_add_ps(_mm256_permute2f128_ps(t[2 * i][h], t[2 * i + 1][h], 0x20),
                               _mm256_permute2f128_ps(t[2 * i][h], t[2 * i + 1][h], 0x31));
-  // u[i][h] lane 0-3: v[4i+h... ]; see the index bookkeeping in the final store
   __m256 w[2][2];
   for (int i = 0; i < 2; ++i)
     for (int h = 0; h < 2; ++h) {
@@ -292,83 +386,15 @@ SMGS_FI VF reduce16(const VF* v) {
     const __m256 a = w[0][h], b = w[1][h];
     s[h] = _mm256_add_ps(_mm256_shuffle_ps(a, b, 0x88), _mm256_shuffle_ps(a, b, 0xDD));
   }
-  // s[h] lane (128-bit half g, element k) holds the sum of v[8·(k&1) ... ]: reorder by a table
+  // the tree leaves its sums in this order (checked by tests/simd_check.cpp)
   alignas(32) float raw[16], out[16];
   _mm256_store_ps(raw, s[0]);
   _mm256_store_ps(raw + 8, s[1]);
-  // lane bookkeeping: t[i][h] holds v[2i+h]; u[i][h] lanes 0-3 ← t[2i][h], 4-7 ← t[2i+1][h], i.e.
-  // v[4i+h] and v[4i+2+h]; w[i][h] 128-bit lane L, pairs (0,1) ← u[2i][h] lane L, (2,3) ← u[2i+1][h]
-  // lane L; s[h] element 2L+... see kOrder (computed once by hand and checked by the tests).
   constexpr int kOrder[16] = {0, 4, 8, 12, 2, 6, 10, 14, 1, 5, 9, 13, 3, 7, 11, 15};
   for (int k = 0; k < 16; ++k) out[kOrder[k]] = raw[k];
   return load(out);
 }
-#elif defined(SMGS_ISA_NEON)
-SMGS_FI float32x4_t q(VF x, int i) {
-  float32x4_t r;
-  std::memcpy(&r, reinterpret_cast<const char*>(&x.v) + 16 * i, 16);
-  return r;
-}
-SMGS_FI VF join4(float32x4_t a, float32x4_t b, float32x4_t c, float32x4_t d) {
-  VF r;
-  std::memcpy(reinterpret_cast<char*>(&r.v), &a, 16);
-  std::memcpy(reinterpret_cast<char*>(&r.v) + 16, &b, 16);
-  std::memcpy(reinterpret_cast<char*>(&r.v) + 32, &c, 16);
-  std::memcpy(reinterpret_cast<char*>(&r.v) + 48, &d, 16);
-  return r;
-}
-SMGS_FI VF fmadd(VF a, VF b, VF c) {
-  return join4(vfmaq_f32(q(c, 0), q(a, 0), q(b, 0)), vfmaq_f32(q(c, 1), q(a, 1), q(b, 1)),
-               vfmaq_f32(q(c, 2), q(a, 2), q(b, 2)), vfmaq_f32(q(c, 3), q(a, 3), q(b, 3)));
-}
-SMGS_FI VF vsqrt(VF x) { return join4(vsqrtq_f32(q(x, 0)), vsqrtq_f32(q(x, 1)), vsqrtq_f32(q(x, 2)), vsqrtq_f32(q(x, 3))); }
-SMGS_FI VF vrcp(VF x) { return VF(1.0f) / x; }
-SMGS_FI VF vsqrt_pos(VF x) { return vsqrt(x); }
-SMGS_FI unsigned bits(VM m) {
-  const uint32x4_t w = {1u, 2u, 4u, 8u};
-  unsigned r = 0;
-  for (int i = 0; i < 4; ++i) {
-    uint32x4_t x;
-    std::memcpy(&x, reinterpret_cast<const char*>(&m.m) + 16 * i, 16);
-    r |= vaddvq_u32(vandq_u32(x, w)) << (4 * i);
-  }
-  return r;
-}
-SMGS_FI bool any(VM m) {
-  uint32x4_t a[4];
-  std::memcpy(a, &m.m, sizeof a);
-  return vmaxvq_u32(vorrq_u32(vorrq_u32(a[0], a[1]), vorrq_u32(a[2], a[3]))) != 0;
-}
-#else  // scalar
-SMGS_FI VF fmadd(VF a, VF b, VF c) { return a * b + c; }  // no FMA in the baseline ISA: two roundings
-SMGS_FI VF vsqrt(VF x) {
-  VF r;
-  for (int i = 0; i < kLanes; ++i) r.v[i] = std::sqrt(x.v[i]);
-  return r;
-}
-SMGS_FI VF vrcp(VF x) { return VF(1.0f) / x; }
-SMGS_FI VF vsqrt_pos(VF x) { return vsqrt(x); }
-SMGS_FI unsigned bits(VM m) {
-  unsigned r = 0;
-  for (int i = 0; i < kLanes; ++i) r |= unsigned(m.m[i] & 1) << i;
-  return r;
-}
-SMGS_FI bool any(VM m) { return bits(m) != 0; }
-#endif
-
-SMGS_FI bool all(VM m) { return bits(m) == 0xFFFFu; }
-SMGS_FI int popcount(VM m) { return __builtin_popcount(bits(m)); }
-SMGS_FI VM mask_from_bits(unsigned b) {
-  const I16v lane = {1 << 0, 1 << 1, 1 << 2, 1 << 3, 1 << 4, 1 << 5, 1 << 6, 1 << 7,
-                     1 << 8, 1 << 9, 1 << 10, 1 << 11, 1 << 12, 1 << 13, 1 << 14, 1 << 15};
-  return {(lane & int32_t(b)) != 0};
-}
-SMGS_FI float hsum(VF x) {
-  float s = 0.f;
-  for (int i = 0; i < kLanes; ++i) s += x.v[i];
-  return s;
-}
-#if !defined(SMGS_ISA_AVX2)
+#else
 SMGS_FI VF reduce16(const VF* v) {
   alignas(64) float r[kLanes];
   for (int k = 0; k < kLanes; ++k) r[k] = hsum(v[k]);
@@ -378,57 +404,61 @@ SMGS_FI VF reduce16(const VF* v) {
 
 // Round to nearest even for |x| < 2^22: adding and subtracting 1.5·2^23 leaves the integer part
 // (exact without -ffast-math, which no path uses).
-SMGS_FI VF round_small(VF x) {
-  const VF magic(12582912.0f);
-  return (x + magic) - magic;
-}
-SMGS_FI I16v to_int(VF x) { return __builtin_convertvector(x.v, I16v); }
-SMGS_FI VF pow2i(I16v n) { return (F16v)((n + 127) << 23); }  // 2^n for n in [-126, 127]
+SMGS_FI FN round_small(FN x) { return (x + 12582912.0f) - 12582912.0f; }
+SMGS_FI FN pow2i(IN n) { return (FN)((n + 127) << 23); }  // 2^n for n in [-126, 127]
 
-SMGS_FI VF vexp(VF x) {
+SMGS_FI FN vexpn(FN x) {
   using namespace cephes;
-  VF v = max_c(min_c(x, VF(kExpHi)), VF(kExpLo));
-  const VF n = round_small(v * VF(kLog2e));
-  VF r = v - n * VF(kLn2Hi);  // exact: n·kLn2Hi has at most 8 + 9 significant bits
-  r = fmadd(n, VF(-kLn2Lo), r);
-  const VF r2 = r * r;
-  const VF e01 = fmadd(VF(kE1), r, VF(kE0));
-  const VF e23 = fmadd(VF(kE3), r, VF(kE2));
-  const VF e45 = fmadd(VF(kE5), r, VF(kE4));
-  const VF p = fmadd(fmadd(e45, r2, e23), r2, e01);
-  const VF y = fmadd(p, r2, r) + VF(1.0f);
+  const FN v = maxn(minn(x, FN{} + kExpHi), FN{} + kExpLo);
+  const FN n = round_small(v * kLog2e);
+  FN r = v - n * kLn2Hi;  // exact: n·kLn2Hi has at most 8 + 9 significant bits
+  r = fman(n, FN{} - kLn2Lo, r);
+  const FN r2 = r * r;
+  const FN e01 = fman(FN{} + kE1, r, FN{} + kE0);
+  const FN e23 = fman(FN{} + kE3, r, FN{} + kE2);
+  const FN e45 = fman(FN{} + kE5, r, FN{} + kE4);
+  const FN p = fman(fman(e45, r2, e23), r2, e01);
+  const FN y = fman(p, r2, r) + 1.0f;
   // 2^n as two factors so that n in [-150, 128] stays representable: under/overflow go to the
   // denormals / 0 / inf as a true exp would.
-  const I16v ni = to_int(n);
-  const I16v n1 = ni >> 1;
+  const IN ni = __builtin_convertvector(n, IN);
+  const IN n1 = ni >> 1;
   return y * pow2i(n1) * pow2i(ni - n1);
 }
+SMGS_FI VF vexp(VF x) {
+  for (int k = 0; k < kK; ++k) x.v[k] = vexpn(x.v[k]);
+  return x;
+}
 
-SMGS_FI VF vlog(VF x) {
+SMGS_FI FN vlogn(FN x) {
   using namespace cephes;
   // denormals: scale into the normal range first
-  const VM sub = x < VF(1.17549435e-38f);
-  const VF xs = sel(sub, x * VF(8388608.0f), x);
-  const I16v b = (I16v)xs.v;
-  VF e(__builtin_convertvector(((b >> 23) & 0xFF) - 127, F16v));
-  e = sel(sub, e - VF(23.0f), e);
-  VF m((F16v)((b & 0x007FFFFF) | 0x3F800000));  // in [1, 2)
-  const VM big = m > VF(kSqrtHalf2);
-  m = sel(big, m * VF(0.5f), m);
-  e = sel(big, e + VF(1.0f), e);
-  const VF t = m - VF(1.0f);
-  const VF z = t * t;
-  VF y(kL[0]);
-  for (int i = 1; i < 9; ++i) y = fmadd(y, t, VF(kL[i]));
+  const IN sub = x < 1.17549435e-38f;
+  const FN xs = seln(sub, x * 8388608.0f, x);
+  const IN b = (IN)xs;
+  FN e = __builtin_convertvector(((b >> 23) & 0xFF) - 127, FN);
+  e = seln(sub, e - 23.0f, e);
+  FN m = (FN)((b & 0x007FFFFF) | 0x3F800000);  // in [1, 2)
+  const IN big = m > kSqrtHalf2;
+  m = seln(big, m * 0.5f, m);
+  e = seln(big, e + 1.0f, e);
+  const FN t = m - 1.0f;
+  const FN z = t * t;
+  FN y = FN{} + kL[0];
+  for (int i = 1; i < 9; ++i) y = fman(y, t, FN{} + kL[i]);
   y = y * t * z;
-  y = fmadd(e, VF(kLn2Lo), y);
-  y = fmadd(z, VF(-0.5f), y);
-  VF r = t + y;
-  r = fmadd(e, VF(kLn2Hi), r);
+  y = fman(e, FN{} + kLn2Lo, y);
+  y = fman(z, FN{} - 0.5f, y);
+  FN r = t + y;
+  r = fman(e, FN{} + kLn2Hi, r);
   const float inf = std::numeric_limits<float>::infinity(), nan = std::numeric_limits<float>::quiet_NaN();
-  r = sel(x == VF(0.0f), VF(-inf), r);
-  r = sel(x == VF(inf), VF(inf), r);
-  return sel(mor(x < VF(0.0f), x != x), VF(nan), r);
+  r = seln(x == 0.0f, FN{} - inf, r);
+  r = seln(x == inf, FN{} + inf, r);
+  return seln((x < 0.0f) | (x != x), FN{} + nan, r);
+}
+SMGS_FI VF vlog(VF x) {
+  for (int k = 0; k < kK; ++k) x.v[k] = vlogn(x.v[k]);
+  return x;
 }
 #endif
 
