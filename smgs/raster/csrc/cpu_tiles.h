@@ -1,6 +1,6 @@
-// Compositing core of the compiled CPU renderer (threads over tiles: parallel.h) as templates over the mode (GEF, SOFT) and the
-// channel count (NCT = 3 keeps the colour state in registers; 0 = any count, in scratch). Included
-// only by the core's translation units (cpu_fwd.cpp, cpu_bwd.cpp, cpu_bwd_soft.cpp).
+// Compositing core of the compiled CPU renderer (threads over tiles: parallel.h) as templates over
+// the mode (GEF, SOFT) and the channel count (NCT = 3 keeps the colour state in registers; 0 = any
+// count, in scratch). Included only by the core's units (cpu_fwd.cpp, cpu_bwd.cpp, cpu_bwd_soft.cpp).
 #pragma once
 
 #include "cpu_core.h"
