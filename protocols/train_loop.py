@@ -266,9 +266,10 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
     backend = cfg.get("backend", "auto")
-    from smgs.raster import resolve_backend
+    from smgs.raster import cpu as raster_cpu, resolve_backend
 
     result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
+    result.versions["cpu_isa"] = raster_cpu.isa_in_use()   # SIMD path of the compiled CPU kernels
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}

@@ -17,6 +17,9 @@ from smgs.raster import constants as K
 from smgs.train import Trainer, from_dict, pattern_config, to_dict
 from smgs.data.patterns import pattern_scene
 
+# every SIMD path of the compiled CPU kernels this host runs (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("cpu_isa")
+
 KEYS = ["means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma"]
 
 

@@ -26,6 +26,9 @@ from smgs.raster import MODES, backend_available, rasterize, rasterize_splats, r
 from smgs.raster import constants as K
 from smgs.raster.stability import GRAD_RTOL, OUT_ATOL, stiff_battery
 
+# every SIMD path of the compiled CPU kernels this host runs (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("cpu_isa")
+
 OUT_ATOL32, GRAD_RTOL32 = 2e-6, 2e-5
 OUT_ATOL64, GRAD_RTOL64 = 2e-5, 2e-4
 KEYS = ["means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma"]

@@ -17,8 +17,11 @@ import torch
 
 from smgs.camera import Camera
 from smgs.raster import projection
-from smgs.raster.jit import JitExtension
+from smgs.raster.cpu import cpu_extension
 from smgs.raster.projection import _view, project_gaussians, quat_to_rotmat
+
+# every SIMD path of the compiled CPU kernels this host runs (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("cpu_isa")
 
 needs_cc = pytest.mark.skipif(shutil.which("c++") is None, reason="no C++ compiler: no compiled projection")
 
@@ -195,11 +198,11 @@ def test_nothing_visible_and_no_gaussians():
 
 
 def test_unavailable_extension_falls_back_or_raises(monkeypatch):
-    monkeypatch.setattr(projection, "_JIT", JitExtension("cpu", projection._JIT.build, lambda: "disabled for the test",
-                                                         what="projection kernel"))
+    monkeypatch.setenv("SMGS_DISABLE_CPU_BACKEND", "1")   # a fresh extension checks it before building
+    monkeypatch.setattr(projection, "_JIT", cpu_extension("x", [], "projection kernel"))
     cam = _camera()
     means, quats, scales = _scene(20, 0)
     p = project_gaussians(means.requires_grad_(True), quats, scales, cam)
     assert type(p.means2d.grad_fn).__name__ == "_ProjectBackward"
-    with pytest.raises(RuntimeError, match="disabled for the test"):
+    with pytest.raises(RuntimeError, match="disabled by SMGS_DISABLE_CPU_BACKEND"):
         project_gaussians(means, quats, scales, cam, fused=True)

@@ -12,6 +12,9 @@ import torch
 from smgs.raster import MODES, backend_available, rasterize_splats
 from smgs.raster.stability import GRAD_RTOL, H, KEYS, OUT_ATOL, W, base_scene, make_case, run, stiff_cases
 
+# every SIMD path of the compiled CPU kernels this host runs (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("cpu_isa")
+
 @pytest.mark.parametrize("mode", ["softmax_gs", "softmax_only", "gef_only", "3dgs"])
 @pytest.mark.parametrize("name,spec", stiff_cases(), ids=[c[0] for c in stiff_cases()])
 def test_stiff_case_finite_and_float32_close_to_float64(name, spec, mode):

@@ -10,6 +10,9 @@ import torch.nn.functional as F
 from smgs.metrics.ssim import ssim
 from smgs.train.image_loss import PhotometricLoss, fused_available, ray_variance
 
+# every SIMD path of the compiled CPU kernels this host runs (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("cpu_isa")
+
 needs_cc = pytest.mark.skipif(shutil.which("c++") is None, reason="no C++ compiler: no compiled loss")
 
 

@@ -1,11 +1,18 @@
-"""Compiled CPU backend (C++/OpenMP, SIMD over the pixels of a tile): forward and hand-written backward.
+"""Compiled CPU backend (C++, SIMD over the pixels of a tile, threads over tiles): forward and
+hand-written backward.
 
 Built just in time with ``torch.utils.cpp_extension.load`` on first use and cached (in
 ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``) by a key of the sources, flags and CPU
 kind (``smgs.raster.buildcache``); later processes load the cached library in well under a second.
-The sources are ``csrc/cpu_kernel.cpp`` and ``csrc/splat_math.h`` (the per-splat math shared with
-other compiled backends). Same images and gradients as
-``smgs.raster.reference`` to float32 rounding (tests/test_raster_cpu.py states the tolerances).
+The sources are ``csrc/cpu_kernel.cpp`` (torch glue, binning, sort) and the compositing core ``csrc/cpu_{fwd,bwd,bwd_soft}.cpp`` over ``cpu_tiles.h``, with the SIMD
+layer ``simd.h``, the threads ``parallel.h`` and the per-splat math ``splat_math.h`` (shared with the
+CUDA backend). Same images and gradients as ``smgs.raster.reference`` to float32 rounding
+(tests/test_raster_cpu.py states the tolerances).
+
+SIMD path: avx512, avx2 (x86-64-v3), neon (aarch64) or scalar, the best the host runs unless
+``SMGS_CPU_ISA`` names one (``isa()`` says which is in use). The renderer's threads are its own
+(``torch.get_num_threads()`` of them, blocking waits); the projection and loss kernels use torch's
+pool and need OpenMP for more than one thread (``openmp_flags``). ``t_min`` is a run-time argument.
 
 Set ``SMGS_DISABLE_CPU_BACKEND=1`` to make ``is_available()`` report False (``auto`` then falls back
 to the reference); so does a missing compiler or ninja. Any other build failure raises ``BuildError``.
@@ -13,11 +20,15 @@ to the reference); so does a missing compiler or ninja. Any other build failure 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import os
 import platform
 import shutil
+import subprocess
+import tempfile
+import threading
 from pathlib import Path
 
 import torch
@@ -31,18 +42,80 @@ log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).parent / "csrc"
 DISABLE = "SMGS_DISABLE_CPU_BACKEND"
-_SOURCES = ("cpu_kernel.cpp",)
-_HEADERS = ("splat_math.h",)
+# The torch glue first; the compositing core's three units build in parallel with it (ninja).
+_SOURCES = ("cpu_kernel.cpp", "cpu_fwd.cpp", "cpu_bwd.cpp", "cpu_bwd_soft.cpp")
 # -ffp-contract=off keeps a·b + c as two roundings, as PyTorch evaluates the reference, so the
 # reach tests (q <= 4.5, a >= 1/255, T < 1e-4) see the same numbers; FMAs are written explicitly
 # where wanted. -fno-math-errno / -fno-trapping-math only let sqrt and selects vectorise: unlike
-# -ffast-math they keep NaN/inf semantics.
-_CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
-           "-fno-trapping-math", "-std=c++17"]
+# -ffast-math they keep NaN/inf semantics. -Wno-psabi: the 64-byte lane vectors never cross a call.
+_CFLAGS = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-std=c++17", "-Wno-psabi"]
+
+ISAS = ("avx512", "avx2", "neon", "scalar")
+ISA_ENV = "SMGS_CPU_ISA"
+
+
+def isa_flags(isa: str) -> list[str]:
+    """Compiler flags of one SIMD path of csrc/simd.h (the define selects the path; the flags let
+    the compiler emit its instructions)."""
+    flags = {
+        "avx512": ["-march=native"],            # only chosen where the host has AVX-512 F + DQ
+        "avx2": ["-mavx2", "-mfma", "-mtune=native"],   # x86-64-v3, whatever else the host has
+        "neon": [],                              # Advanced SIMD is baseline on aarch64
+        "scalar": [],                            # the architecture's baseline only
+    }
+    if isa not in flags:
+        raise ValueError(f"unknown CPU SIMD path {isa!r}; choose one of {', '.join(ISAS)}")
+    return flags[isa] + [f"-DSMGS_ISA_{isa.upper()}"]
+
+
+@functools.lru_cache(maxsize=1)
+def host_isas() -> tuple[str, ...]:
+    """The SIMD paths this host CPU can run, best first (scalar always)."""
+    machine = platform.machine().lower()
+    feats = _cpu_features()
+    if machine in ("x86_64", "amd64"):
+        found = [isa for isa, need in (("avx512", {"avx512f", "avx512dq"}), ("avx2", {"avx2", "fma"}))
+                 if need <= feats]
+        return (*found, "scalar")
+    if machine in ("aarch64", "arm64"):
+        return ("neon", "scalar")
+    return ("scalar",)
+
+
+def _cpu_features() -> set[str]:
+    """CPU feature names, lower case: /proc/cpuinfo flags (Linux), sysctl features (macOS)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("flags", "Features")):
+                    return set(line.split(":", 1)[1].lower().split())
+    except OSError:
+        pass
+    try:
+        out = subprocess.run(["sysctl", "-n", "machdep.cpu.features", "machdep.cpu.leaf7_features"],
+                             capture_output=True, text=True, timeout=5).stdout
+        return set(out.lower().split())
+    except (OSError, subprocess.SubprocessError):
+        return set()
+
+
+def select_isa() -> str:
+    """The SIMD path to build: ``$SMGS_CPU_ISA`` if set, else the best one this host runs."""
+    want = os.environ.get(ISA_ENV, "").strip().lower()
+    can = host_isas()
+    if not want:
+        return can[0]
+    if want not in ISAS:
+        raise ValueError(f"{ISA_ENV}={want!r} is not a CPU SIMD path; choose one of {', '.join(ISAS)} "
+                         f"(this host runs {', '.join(can)})")
+    if want not in can:
+        raise RuntimeError(f"{ISA_ENV}={want}: this CPU ({platform.machine()}) cannot run the {want} path; "
+                           f"it runs {', '.join(can)} (unset {ISA_ENV} to take the best)")
+    return want
 
 
 def _cpu_tag() -> str:
-    """-march=native code must not be loaded on another CPU kind sharing the cache directory."""
+    """-mtune/-march=native code must not be loaded on another CPU kind sharing the cache directory."""
     ident = platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -54,6 +127,32 @@ def _cpu_tag() -> str:
     except OSError:
         ident += platform.processor()
     return hashlib.sha1(ident.encode()).hexdigest()[:10]
+
+
+@functools.lru_cache(maxsize=1)
+def openmp_flags() -> tuple[list[str], list[str], str]:
+    """(compile flags, link flags, what) for OpenMP: ``-fopenmp`` where the compiler takes it (GCC,
+    LLVM clang), ``-Xpreprocessor -fopenmp -lomp`` where libomp is found (Apple clang with Homebrew's
+    libomp), else none: the kernels then run on one thread, and the log says so."""
+    cxx = os.environ.get("CXX", "c++")
+    candidates = [(["-fopenmp"], ["-fopenmp"], "OpenMP (-fopenmp)")]
+    for prefix in ("/opt/homebrew/opt/libomp", "/usr/local/opt/libomp"):
+        if Path(prefix, "include", "omp.h").exists():
+            candidates.append((["-Xpreprocessor", "-fopenmp", f"-I{prefix}/include"],
+                               [f"-L{prefix}/lib", "-lomp"], f"OpenMP (libomp in {prefix})"))
+    src = "#include <omp.h>\nint main() { return omp_get_max_threads() > 0 ? 0 : 1; }\n"
+    with tempfile.TemporaryDirectory() as tmp:
+        Path(tmp, "omp.cpp").write_text(src)
+        for cflags, ldflags, what in candidates:
+            cmd = [cxx, *cflags, str(Path(tmp, "omp.cpp")), "-o", str(Path(tmp, "omp")), *ldflags]
+            try:
+                if subprocess.run(cmd, capture_output=True, timeout=120).returncode == 0:
+                    return cflags, ldflags, what
+            except (OSError, subprocess.SubprocessError):
+                break
+    log.warning("smgs: %s has no OpenMP here: the compiled projection and loss kernels run on one "
+                "thread (the renderer has its own threads)", cxx)
+    return [], [], "no OpenMP (one thread)"
 
 
 def _precheck() -> str | None:
@@ -69,17 +168,64 @@ def _precheck() -> str | None:
     return None
 
 
-def cpu_extension(name: str, sources: list[Path], what: str, include: list[Path] | None = None) -> JitExtension:
-    """A compiled CPU extension of smgs (``_CFLAGS``, OpenMP), built just in time on first use and
-    cached by a key of its sources, flags and CPU kind (``smgs.raster.buildcache``): the renderer
-    here, the projection and the training loss elsewhere."""
+class CpuExtension:
+    """A compiled CPU extension of smgs, one build per SIMD path (``isa_flags``; the path is part of
+    the build name, so the paths never share a binary), chosen by ``select_isa()`` at each use: the
+    renderer here, the projection and the training loss elsewhere. Each path is a ``JitExtension``,
+    built just in time on first use."""
 
-    def build(suffix: str, defines: tuple[str, ...]):
-        return compile_and_load(ExtensionSpec(
-            name=f"{name}{suffix}", sources=tuple(sources), what=what, include_dirs=tuple(include or ()),
-            cflags=tuple(_CFLAGS) + tuple(defines), ldflags=("-fopenmp",), target=_cpu_tag()))
+    def __init__(self, name: str, sources: list[Path], what: str, include: list[Path] | None = None):
+        self.name, self.sources, self.what, self.include = name, sources, what, include or []
+        self._paths: dict[str, JitExtension] = {}
+        self._lock = threading.Lock()
 
-    return JitExtension("cpu", build, _precheck, what=what, disable=DISABLE)
+    def jit(self, isa: str | None = None) -> JitExtension:
+        isa = isa or select_isa()
+        with self._lock:
+            if isa not in self._paths:
+                self._paths[isa] = JitExtension("cpu", self._builder(isa), _precheck, what=self.what,
+                                                disable=DISABLE)
+            return self._paths[isa]
+
+    def _builder(self, isa: str):
+        def build(suffix: str, defines: tuple[str, ...]):
+            omp_c, omp_l, omp_what = openmp_flags()
+            log.info("smgs: the compiled CPU %s: %s path, %s", self.what, isa, omp_what)
+            # the cache key (smgs.raster.buildcache) covers the sources, every flag and the CPU kind
+            return compile_and_load(ExtensionSpec(
+                name=f"{self.name}_{isa}{suffix}", sources=tuple(self.sources), what=self.what,
+                include_dirs=tuple(self.include), cflags=tuple(_CFLAGS + omp_c + isa_flags(isa)) + tuple(defines),
+                ldflags=tuple(omp_l), target=_cpu_tag()))
+        return build
+
+    @property
+    def kind(self) -> str:
+        return "cpu"
+
+    def is_available(self) -> bool:
+        """Whether the path in use builds; a failed build (``BuildError``) propagates."""
+        try:
+            isa = select_isa()
+        except (ValueError, RuntimeError) as exc:   # an SMGS_CPU_ISA this host cannot run
+            log.warning("smgs cpu %s unavailable: %s", self.what, exc)
+            return False
+        return self.jit(isa).is_available()
+
+    def unavailable_reason(self) -> str | None:
+        try:
+            isa = select_isa()
+        except (ValueError, RuntimeError) as exc:
+            return str(exc)
+        return self.jit(isa).unavailable_reason()
+
+    def module(self):
+        return self.jit().module()
+
+
+def cpu_extension(name: str, sources: list[Path], what: str, include: list[Path] | None = None) -> CpuExtension:
+    """A compiled CPU extension of smgs (``_CFLAGS``, OpenMP where the compiler has it, one build
+    per SIMD path), built just in time on first use."""
+    return CpuExtension(name, sources, what, include)
 
 
 class UnsupportedInput(ValueError, RuntimeError):
@@ -87,7 +233,7 @@ class UnsupportedInput(ValueError, RuntimeError):
     argument (ValueError), and like the kernel's other refusals a RuntimeError."""
 
 
-def use_cpu_kernel(ext: JitExtension, fused: bool | None, tensors: tuple[torch.Tensor, ...], takes: str) -> bool:
+def use_cpu_kernel(ext: CpuExtension, fused: bool | None, tensors: tuple[torch.Tensor, ...], takes: str) -> bool:
     """Whether to run a compiled CPU kernel (the projection, the training loss) rather than its
     PyTorch path: ``fused`` None = wherever it applies (float32 CPU ``tensors``) and builds; True =
     required (UnsupportedInput naming what it takes, RuntimeError naming why it cannot build);
@@ -110,18 +256,32 @@ is_available = _JIT.is_available
 unavailable_reason = _JIT.unavailable_reason
 
 
-def extension(t_min: float = K.T_MIN):
-    """The loaded extension module (builds it if needed); raises if it cannot be built. A
-    ``t_min`` other than the default is compiled in (``-DSMGS_T_MIN``): one more build per value,
-    cached like the default one."""
-    return _JIT.module(t_min)
+def extension():
+    """The loaded extension module of the selected SIMD path (builds it if needed); raises if it
+    cannot be built. ``t_min`` is a run-time argument of its kernels: one build serves every value."""
+    return _JIT.module()
+
+
+def isa() -> str:
+    """The SIMD path of the compiled renderer in use (builds it if needed): avx512, avx2, neon or
+    scalar."""
+    return extension().isa()
+
+
+def isa_in_use() -> str:
+    """The SIMD path this process's compiled CPU kernels use (or were refused: the reason), without
+    building anything: for results' version records."""
+    try:
+        return select_isa()
+    except (ValueError, RuntimeError) as exc:
+        return f"none ({exc})"
 
 
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background,
                 reg_values, cfg):
-        ext = extension(cfg[-1])
+        ext = extension()
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
         width, height, use_gef, use_soft, k_max, solved, reg_scale, _ = cfg
@@ -129,7 +289,7 @@ class _RasterizeCPU(torch.autograd.Function):
         (rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, ids, pk, box, toff, tlist, soff,
          spos) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
                               opt(background), opt(reg_values), width, height, use_gef, use_soft, k_max,
-                              solved, reg_scale, nthreads)
+                              solved, reg_scale, nthreads, cfg[-1])
         ctx.save_for_backward(alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos,
                               opt(background))
         ctx.cfg = cfg
@@ -145,7 +305,7 @@ class _RasterizeCPU(torch.autograd.Function):
         n, nch, n_reg, has_alpha, has_soft, has_bg, nthreads = ctx.meta
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
         g_reg = g_reg.contiguous().float() if n_reg else g_rgb.new_empty(0)
-        gm, gc, go, gcol, gd, gal, gbe, gga, grv = extension(t_min).backward(
+        gm, gc, go, gcol, gd, gal, gbe, gga, grv = extension().backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
             spos, bg,
             n, nch, n_reg, width, height, use_gef, use_soft, k_max, solved, reg_scale, nthreads)

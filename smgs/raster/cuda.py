@@ -84,8 +84,8 @@ unavailable_reason = _JIT.unavailable_reason
 
 def extension(t_min: float = K.T_MIN):
     """The loaded extension module (builds it if needed); raises if it cannot be built. A ``t_min``
-    other than the default is compiled in (``-DSMGS_T_MIN``, as the CPU backend does): one more
-    build per value, cached like the default one."""
+    other than the default is compiled in (``-DSMGS_T_MIN``; the CPU backend takes it at run
+    time): one more build per value, cached like the default one."""
     return _JIT.module(t_min)
 
 

@@ -190,7 +190,7 @@ _JIT = cpu_extension("smgs_projection_cpu", [_CSRC / "projection_cpu.cpp"], "pro
 
 
 def fused_available() -> bool:
-    """Whether the compiled CPU projection can be used here (builds it on first call; never raises)."""
+    """Whether the compiled CPU projection can be used here (builds it on first call; a failed build raises ``BuildError``)."""
     return _JIT.is_available()
 
 

@@ -35,7 +35,7 @@ _JIT = cpu_extension("smgs_image_loss_cpu", [_CSRC / "image_loss.cpp"], "trainin
 
 
 def fused_available() -> bool:
-    """Whether the compiled CPU loss can be used here (builds it on first call; never raises)."""
+    """Whether the compiled CPU loss can be used here (builds it on first call; a failed build raises ``BuildError``)."""
     return _JIT.is_available()
 
 

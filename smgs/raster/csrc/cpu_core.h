@@ -1,0 +1,56 @@
+// Interface of the compiled CPU renderer's compositing core (forward and backward over 16x16 tiles,
+// OpenMP across tiles, the 16 pixels of a 4x4 block as SIMD lanes; templates in cpu_tiles.h, compiled
+// in cpu_fwd.cpp, cpu_bwd.cpp and cpu_bwd_soft.cpp, which build in parallel). No torch headers, so
+// that the SIMD paths and the core compile on their own (tests cross-compile them for aarch64). The
+// torch glue, binning and depth sort are in cpu_kernel.cpp.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#include "splat_math.h"
+
+namespace smgs {
+
+// Packed per-splat row (depth order): parameters, then colours, then regularised values.
+enum { P_MX = 0, P_MY, P_CA, P_CB, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL };
+
+struct Scene {
+  int W = 0, H = 0, nch = 0, R = 0, S = 0, M = 0;
+  int tiles_x = 0, tiles_y = 0;
+  int kmax = 0;
+  bool solved = true;
+  float reg_scale = 1.f;
+  const float* pk = nullptr;       // [M, S]
+  const int32_t* box = nullptr;    // [M, 4] inclusive pixel ranges x0, x1, y0, y1
+  const int32_t* toff = nullptr;   // [tiles + 1]
+  const int32_t* tlist = nullptr;  // [L] rows of pk, ascending = depth order
+  const float* bg = nullptr;       // [nch] or null
+  int nthreads = 1;
+  float tstop = kTStop;             // stop before T < t_min: t_min·(1 - T_STOP_SLACK), in float32
+};
+
+struct FwdOut {
+  float *rgb, *alpha, *depth, *Tf, *reg;
+  int32_t *last, *cnt;
+};
+
+struct BwdIn {
+  const float *g_rgb, *g_alpha, *g_depth, *g_reg;  // g_reg may be null
+  const float *alpha, *depth, *Tf;
+  const int32_t* last;
+};
+
+inline int padded(int S) { return (S + 15) & ~15; }  // rows on 64-byte boundaries
+
+// The compositing passes (the mode's template instance chosen at run time) and the SIMD path
+// compiled in (simd.h: avx512, avx2, neon or scalar).
+int64_t forward_tiles(const Scene& sc, const FwdOut& o, bool gef, bool soft);
+void backward_tiles(const Scene& sc, const BwdIn& in, float* G, bool gef, bool soft);
+void backward_tiles_soft(const Scene& sc, const BwdIn& in, float* G, bool gef);
+const char* simd_isa();
+
+}  // namespace smgs
