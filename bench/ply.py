@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 import tempfile
@@ -27,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:       # `python bench/ply.py` from a checkout
     sys.path.insert(0, str(ROOT))
 
+from smgs.env import cpu_model  # noqa: E402
 from smgs.io.ply import EXTRAS, PlySplats, read_ply, write_ply  # noqa: E402
 
 
@@ -35,16 +35,6 @@ def random_splats(n: int, degree: int, seed: int = 0) -> PlySplats:
     f = (lambda *shape: g.standard_normal(shape, dtype=np.float32))
     return PlySplats(f(n, 3), f(n, (degree + 1) ** 2, 3), f(n), f(n, 3), f(n, 4), {e: f(n) for e in EXTRAS},
                      {"mode": "softmax_gs"})
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
            "file_mib": round(mb, 1), "write_s_best": min(writes), "write_s_median": statistics.median(writes),
            "read_s_best": min(reads), "read_s_median": statistics.median(reads), "write_cpu_s_best": min(cpu_w),
            "read_cpu_s_best": min(cpu_r), "repeats": args.repeats,
-           "cpu": cpu_name(), "numpy": np.__version__}
+           "cpu": cpu_model(), "numpy": np.__version__}
     print(f"{args.n} Gaussians, SH degree {args.degree}, {mb:.0f} MiB on {row['cpu']}")
     print(f"  write: best {min(writes):.2f} s, median {statistics.median(writes):.2f} s "
           f"({mb / min(writes):.0f} MiB/s), process CPU {min(cpu_w):.2f} s")
