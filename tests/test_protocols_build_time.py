@@ -19,8 +19,11 @@ TINY = ["+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]", "grid.s
 def test_kernel_builds_are_kept_out_of_train_time_and_recorded_apart(tmp_path, monkeypatch):
     builds: list[str] = []
 
-    def slow(jit: JitExtension) -> JitExtension:
-        """A fresh (unbuilt) holder of the same kernel whose build takes SLOW seconds longer."""
+    def slow(ext) -> JitExtension:
+        """A fresh (unbuilt) holder of the same kernel (on the SIMD path in use) whose build takes
+        SLOW seconds longer."""
+        jit: JitExtension = ext.jit()
+
         def build(suffix, defines):
             time.sleep(SLOW)
             builds.append(jit.what)
