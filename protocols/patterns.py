@@ -40,6 +40,7 @@ from typing import Any
 import torch
 
 METHOD_ORDER = ("softmax_gs", "gef_only", "softmax_only", "3dgs")
+PAPER_TABLE1 = Path(__file__).resolve().parents[1] / "reports" / "paper_tables" / "table1_patterns.csv"
 CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "status", "psnr", "psnr_8bit",
                "final_gaussians", "train_seconds", "ms_per_step", "paper_psnr", "delta_vs_paper", "backend",
                "device", "hparams", "overrides", "error"]
@@ -47,10 +48,13 @@ CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "sta
 
 def paper_table1() -> dict[tuple[str, str, int], float]:
     """The paper's Table 1, (pattern, method, count) -> PSNR, from the CSV that reports/ also
-    reads (reports/paper_tables/table1_patterns.csv); empty if it cannot be read."""
-    from reports.paper import load_paper
-
-    return dict(load_paper().table1)
+    reads (reports/paper_tables/table1_patterns.csv); empty if it cannot be read. Read as a data
+    file, not through reports.paper: protocols do not import reports."""
+    try:
+        with PAPER_TABLE1.open(newline="") as f:
+            return {(r["pattern"], r["method"], int(r["n_gaussians"])): float(r["psnr"]) for r in csv.DictReader(f)}
+    except (OSError, KeyError, ValueError):
+        return {}
 
 
 def _parse_value(text: str) -> Any:

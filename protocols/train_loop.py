@@ -266,10 +266,10 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
     backend = cfg.get("backend", "auto")
-    from smgs.raster import cpu as raster_cpu, resolve_backend
+    from smgs.raster import cpu_build, resolve_backend
 
     result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
-    result.versions["cpu_isa"] = raster_cpu.isa_in_use()   # SIMD path of the compiled CPU kernels
+    result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
@@ -296,7 +296,7 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
     pixels. Scored on this method's own mask; the trajectory is saved beside the results."""
     from smgs.metrics.consistency.score import consistency_row
-    from smgs.metrics.consistency.trajectory import interpolate_trajectory
+    from smgs.data.trajectory import interpolate_trajectory
 
     if scene.trajectory:
         traj = list(scene.trajectory)
