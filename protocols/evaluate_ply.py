@@ -59,7 +59,7 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
     from protocols.cell import result_hash, run_cell
     from protocols.datasets import check_available
     from protocols.results import RESULTS_FILE, read_result
-    from protocols.train_loop import POINTER
+    from protocols.results import POINTER
 
     ply = Path(ply)
     cfg = evaluation_config(ply, overrides)

@@ -17,6 +17,7 @@ from typing import Any
 
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"
+POINTER = "checkpoint.json"   # in a run directory: which checkpoint is its last
 
 
 @dataclass
