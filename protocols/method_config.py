@@ -9,9 +9,9 @@ from typing import Any
 def method_config(cfg: dict) -> dict[str, Any]:
     """The TrainConfig dict of a cell: the method's settings, then the dataset's overrides (e.g.
     the 2D-pattern set-up), then the protocol's step count, the budget and the seed."""
-    from baselines.registry import _merge
+    from baselines.registry import merge_config
 
-    mc = _merge(cfg["method"].get("train") or {}, cfg["dataset"].get("train") or {})
+    mc = merge_config(cfg["method"].get("train") or {}, cfg["dataset"].get("train") or {})
     budget = cfg["budget"]
     densify = dict(mc.get("densify") or {})
     densify.update(budget=budget.get("preset", budget["name"]))

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import statistics
 from pathlib import Path
@@ -39,6 +40,7 @@ from typing import Any
 
 import torch
 
+from smgs.io.atomic import atomic_write_text
 METHOD_ORDER = ("softmax_gs", "gef_only", "softmax_only", "3dgs")
 PAPER_TABLE1 = Path(__file__).resolve().parents[1] / "reports" / "paper_tables" / "table1_patterns.csv"
 CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "status", "psnr", "psnr_8bit",
@@ -164,12 +166,11 @@ def merge_cells(sources: list[Path], out: Path) -> list[dict]:
             if k not in merged or (merged[k]["status"] != "ok" and r["status"] == "ok"):
                 merged[k] = r
     rows = list(merged.values())
-    tmp = out / "cells.csv.tmp"
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=CELL_FIELDS)
-        w.writeheader()
-        w.writerows({k: r.get(k) for k in CELL_FIELDS} for r in rows)
-    tmp.replace(out / "cells.csv")
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=CELL_FIELDS)
+    w.writeheader()
+    w.writerows({k: r.get(k) for k in CELL_FIELDS} for r in rows)
+    atomic_write_text(out / "cells.csv", buf.getvalue())
     return rows
 
 

@@ -20,9 +20,10 @@ from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
 from protocols.method_config import method_config
 from protocols.progress import progress as progress_bar
-from protocols.results import POINTER, CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
+from protocols.results import POINTER, CurvePoint, RunResult
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
+from smgs.io.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
 from smgs.metrics.timing import TrainClock, device_name, measure_render_fps, track_peak_memory
