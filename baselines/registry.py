@@ -111,9 +111,6 @@ def merge_config(base: dict, over: dict) -> dict:
     return out
 
 
-_merge = merge_config  # the old private name (protocols.train_loop imports it)
-
-
 def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str, Any]:
     """The method's fixed settings merged with ``config``; a conflict is an error."""
     spec = get_spec(name)

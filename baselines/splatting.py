@@ -17,6 +17,7 @@ from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.device import resolve_device
 from smgs.raster import RenderOutput
+from smgs.io.atomic import atomic_write_bytes
 from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
                                splats_from_trainer, train_overrides)
 from smgs.io.ply import PlySplats, read_ply, write_ply
@@ -26,12 +27,6 @@ from smgs.train.trainer import Trainer
 
 CHECKPOINT = "checkpoint.pt"
 MANIFEST = "checkpoint.json"
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
 
 
 class GaussianSplatting:
@@ -112,10 +107,10 @@ class GaussianSplatting:
         path.mkdir(parents=True, exist_ok=True)
         buf = io.BytesIO()
         torch.save({"method": self.name, "trainer": self.trainer.state_dict()}, buf)
-        _atomic_write(path / CHECKPOINT, buf.getvalue())
+        atomic_write_bytes(path / CHECKPOINT, buf.getvalue())
         manifest = {**self.describe(), "num_gaussians": self.num_gaussians(),
                     "versions": {"smgs": smgs.__version__, "torch": torch.__version__}}
-        _atomic_write(path / MANIFEST, json.dumps(manifest, indent=1).encode())
+        atomic_write_bytes(path / MANIFEST, json.dumps(manifest, indent=1).encode())
 
     def load(self, path: str | Path) -> None:
         """Restore ``path/checkpoint.pt``. Refused: a file whose pickle would run code (only

@@ -38,7 +38,7 @@ if str(ROOT) not in sys.path:
 from smgs import Camera  # noqa: E402
 from smgs.metrics.timing import device_name, track_peak_memory  # noqa: E402
 from smgs.raster import MODES, backend_available, rasterize  # noqa: E402
-from smgs.raster import cpu as raster_cpu  # noqa: E402
+from smgs.raster import cpu_build  # noqa: E402
 from smgs.raster.projection import project_gaussians  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "bench"
@@ -203,8 +203,8 @@ def main(argv=None) -> None:
     ap.add_argument("--reference-max-pairs", type=float, default=5e6)
     args = ap.parse_args(argv)
 
-    print(f"# smgs renderer benchmark: {device_name('cpu')}, CPU SIMD path {raster_cpu.isa_in_use()} "
-          f"(${raster_cpu.ISA_ENV}), torch {torch.__version__}, k_max {args.k_max}, "
+    print(f"# smgs renderer benchmark: {device_name('cpu')}, CPU SIMD path {cpu_build.isa_in_use()} "
+          f"(${cpu_build.ISA_ENV}), torch {torch.__version__}, k_max {args.k_max}, "
           f"median of {args.repeats} after {args.warmup} warm-up")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     rows, notes = [], []

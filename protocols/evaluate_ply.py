@@ -59,7 +59,7 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
     from protocols.cell import result_hash, run_cell
     from protocols.datasets import check_available
     from protocols.results import RESULTS_FILE, read_result
-    from protocols.train_loop import POINTER
+    from protocols.results import POINTER
 
     ply = Path(ply)
     cfg = evaluation_config(ply, overrides)
@@ -81,7 +81,7 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
     summary = run_cell({"key": cell.key, "run_dir": str(run_dir), "config": cfg})
     summary["run_dir"] = str(run_dir)
     if cfg.get("report"):
-        from reports.build import build_report
+        from protocols.report_step import build_report
 
         summary["report"] = str(build_report(Path(cfg["out_dir"])))
     return summary

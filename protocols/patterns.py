@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import statistics
 from pathlib import Path
@@ -39,7 +40,9 @@ from typing import Any
 
 import torch
 
+from smgs.io.atomic import atomic_write_text
 METHOD_ORDER = ("softmax_gs", "gef_only", "softmax_only", "3dgs")
+PAPER_TABLE1 = Path(__file__).resolve().parents[1] / "reports" / "paper_tables" / "table1_patterns.csv"
 CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "status", "psnr", "psnr_8bit",
                "final_gaussians", "train_seconds", "ms_per_step", "paper_psnr", "delta_vs_paper", "backend",
                "device", "hparams", "overrides", "error"]
@@ -47,10 +50,13 @@ CELL_FIELDS = ["pattern", "method", "n_gaussians", "seed", "steps", "size", "sta
 
 def paper_table1() -> dict[tuple[str, str, int], float]:
     """The paper's Table 1, (pattern, method, count) -> PSNR, from the CSV that reports/ also
-    reads (reports/paper_tables/table1_patterns.csv); empty if it cannot be read."""
-    from reports.paper import load_paper
-
-    return dict(load_paper().table1)
+    reads (reports/paper_tables/table1_patterns.csv); empty if it cannot be read. Read as a data
+    file, not through reports.paper: protocols do not import reports."""
+    try:
+        with PAPER_TABLE1.open(newline="") as f:
+            return {(r["pattern"], r["method"], int(r["n_gaussians"])): float(r["psnr"]) for r in csv.DictReader(f)}
+    except (OSError, KeyError, ValueError):
+        return {}
 
 
 def _parse_value(text: str) -> Any:
@@ -160,12 +166,11 @@ def merge_cells(sources: list[Path], out: Path) -> list[dict]:
             if k not in merged or (merged[k]["status"] != "ok" and r["status"] == "ok"):
                 merged[k] = r
     rows = list(merged.values())
-    tmp = out / "cells.csv.tmp"
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=CELL_FIELDS)
-        w.writeheader()
-        w.writerows({k: r.get(k) for k in CELL_FIELDS} for r in rows)
-    tmp.replace(out / "cells.csv")
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=CELL_FIELDS)
+    w.writeheader()
+    w.writerows({k: r.get(k) for k in CELL_FIELDS} for r in rows)
+    atomic_write_text(out / "cells.csv", buf.getvalue())
     return rows
 
 

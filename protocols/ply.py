@@ -32,7 +32,7 @@ def make_method(cfg: dict, scene, result: RunResult, device: torch.device):
     (``protocols.evaluate_ply``), the model of that file with zero training steps; ``result.source``
     then records where it came from."""
     from baselines.registry import create_method
-    from protocols.train_loop import method_config
+    from protocols.method_config import method_config
 
     name = cfg["method"]["name"]
     src = cfg.get("ply")
@@ -78,8 +78,7 @@ def export_run(run_dir: Path | str, out: Path | str | None = None) -> tuple[Path
     """The PLY of a run directory's last checkpoint (the final model of a finished run); returns
     the file, the checkpoint's step and the run's status ("ok", "failed", or "unfinished")."""
     from baselines.splatting import export_checkpoint_ply
-    from protocols.results import RESULTS_FILE, read_result
-    from protocols.train_loop import POINTER
+    from protocols.results import POINTER, RESULTS_FILE, read_result
 
     run_dir = Path(run_dir)
     ptr = run_dir / POINTER

@@ -9,14 +9,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from smgs.io.atomic import atomic_write_text
+
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"
+POINTER = "checkpoint.json"   # in a run directory: which checkpoint is its last
 
 
 @dataclass
@@ -94,43 +95,6 @@ def config_hash(config: dict) -> str:
     """Stable hash of a resolved config (key order does not matter)."""
     blob = json.dumps(config, sort_keys=True, default=str).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
-
-
-def atomic_write_bytes(path: Path | str, data: bytes) -> None:
-    """Write to a temp file in the same folder, fsync, then rename: a reader never sees half a file
-    and an interrupted write leaves the previous file intact."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a result is as readable as any new file
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _umask() -> int:
-    """The process's umask, read without changing it where Linux shows it (no window in which another
-    thread would create files under a different mask)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except OSError:
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_text(path: Path | str, text: str) -> None:
-    atomic_write_bytes(path, text.encode())
 
 
 def write_result(run_dir: Path | str, result: RunResult) -> Path:

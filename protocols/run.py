@@ -139,7 +139,7 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
             print(f"  {s['key']}: {s['status']}: {s.get('error')}", flush=True)
     print("runs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())), flush=True)
     if cfg.report:
-        from reports.build import build_report
+        from protocols.report_step import build_report
 
         path = build_report(Path(cfg.out_dir))
         print(f"report: {path}", flush=True)

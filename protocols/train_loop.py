@@ -18,64 +18,22 @@ from PIL import Image
 from protocols.datasets import load_scene_for
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
+from protocols.method_config import method_config
 from protocols.progress import progress as progress_bar
-from protocols.results import CurvePoint, RunResult, atomic_write_bytes, atomic_write_text
+from protocols.results import POINTER, CurvePoint, RunResult
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
+from smgs.io.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
 from smgs.metrics.timing import TrainClock, device_name, measure_render_fps, track_peak_memory
 from smgs.raster import mode_flags
-
-POINTER = "checkpoint.json"
-
-
-def method_config(cfg: dict) -> dict[str, Any]:
-    """The TrainConfig dict of a cell: the method's settings, then the dataset's overrides (e.g.
-    the 2D-pattern set-up), then the protocol's step count, the budget and the seed."""
-    from baselines.registry import _merge
-
-    mc = _merge(cfg["method"].get("train") or {}, cfg["dataset"].get("train") or {})
-    budget = cfg["budget"]
-    densify = dict(mc.get("densify") or {})
-    densify.update(budget=budget.get("preset", budget["name"]))
-    if budget.get("densify_grad_threshold") is not None:   # MCMC budgets have none
-        densify["grow_grad2d"] = budget["densify_grad_threshold"]
-    if budget.get("cap") is not None:
-        densify["cap"] = int(budget["cap"])
-    own_steps = cfg["dataset"].get("steps")    # a dataset with its own step count has its own schedule
-    steps = int(own_steps or cfg["protocol"]["steps"])
-    mc.update(steps=steps, seed=int(cfg["seed"]), backend=cfg.get("backend", "auto"), densify=densify)
-    if not own_steps:
-        scale_schedule(mc, steps, cfg["protocol"].get("schedule_steps"))
-    return mc
 
 
 def left_out_of(plan: list[str]) -> list[str]:
     """The plan lines that say a stage is off or a scene capability is missing (the rest say what
     the run uses)."""
     return [line for line in plan if ": off" in line or line.startswith("scene has no")]
-
-
-SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
-
-
-def scale_schedule(mc: dict[str, Any], steps: int, schedule_steps: int | None) -> None:
-    """Scale the 3DGS schedule (written for ``schedule_steps``, 30K) to a run of ``steps``, as
-    gsplat's ``steps_scaler`` does: refinement start/stop/interval, opacity reset and the SH degree
-    interval. Unscaled, a 3000-step run would reset every opacity to 0.01 at its last step."""
-    if not schedule_steps or steps == int(schedule_steps):
-        return
-    from smgs.train import BUDGETS, DensifyConfig, TrainConfig
-
-    f = steps / int(schedule_steps)
-    d = mc["densify"]
-    defaults = {**vars(DensifyConfig()), **BUDGETS.get(d.get("budget"), {})}   # the preset's schedule
-    for k in SCHEDULE_KEYS:
-        v = d.get(k, defaults[k])
-        if v is not None:
-            d[k] = max(1, round(v * f))
-    mc["sh_degree_interval"] = max(1, round(mc.get("sh_degree_interval", TrainConfig.sh_degree_interval) * f))
 
 
 def eval_steps(steps: int, fractions: list[float]) -> list[int]:
@@ -266,10 +224,10 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
     backend = cfg.get("backend", "auto")
-    from smgs.raster import cpu as raster_cpu, resolve_backend
+    from smgs.raster import cpu_build, resolve_backend
 
     result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
-    result.versions["cpu_isa"] = raster_cpu.isa_in_use()   # SIMD path of the compiled CPU kernels
+    result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
                             "metrics_on_8bit": bool(ev.get("quantize", True)),
                             "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
@@ -296,7 +254,7 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
     pixels. Scored on this method's own mask; the trajectory is saved beside the results."""
     from smgs.metrics.consistency.score import consistency_row
-    from smgs.metrics.consistency.trajectory import interpolate_trajectory
+    from smgs.data.trajectory import interpolate_trajectory
 
     if scene.trajectory:
         traj = list(scene.trajectory)

@@ -69,7 +69,7 @@ def _method_problems(cfg: dict) -> list[str]:
     budget names), for the methods trained by ``smgs.train``."""
     from baselines.registry import method_class, resolve_config
     from baselines.splatting import GaussianSplatting
-    from protocols.train_loop import method_config
+    from protocols.method_config import method_config
     from smgs.train.config import TrainConfig, from_dict
 
     name = cfg["method"]["name"]

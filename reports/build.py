@@ -19,7 +19,8 @@ from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
 
-from protocols.results import RunResult, atomic_write_bytes, atomic_write_text
+from protocols.results import RunResult
+from smgs.io.atomic import atomic_write_bytes, atomic_write_text
 from reports.diagnostics import diagnostics_section
 from reports.environment import environment_markdown
 from reports.html import html_report

@@ -10,7 +10,7 @@ import torch
 
 from smgs.camera import Camera
 from smgs.metrics.consistency import Trajectory, frame_pairs, interpolate_trajectory
-from smgs.metrics.consistency.trajectory import quat_to_rotmat, rotation_angle_deg, rotmat_to_quat
+from smgs.data.trajectory import quat_to_rotmat, rotation_angle_deg, rotmat_to_quat
 
 
 def orbit(deg: float, r: float = 3.0, w: int = 40, h: int = 30) -> Camera:

@@ -12,6 +12,7 @@ from baselines.registry import register, unregister
 from baselines.splatting import GaussianSplatting
 from protocols.results import read_result
 from protocols.run import run_experiment
+from smgs.metrics.lpips import WEIGHTS_ENV, find_weights
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -49,13 +50,15 @@ def plugin_methods():
     unregister("interrupt_once")
 
 
-def test_runs_then_skips_finished_cells_and_force_redoes(tmp_path):
+def test_runs_then_skips_finished_cells_and_force_redoes(tmp_path, monkeypatch):
+    monkeypatch.delenv(WEIGHTS_ENV, raising=False)   # no LPIPS weights: the metric is missing, with the fix
     s1 = run_experiment(tiny(tmp_path, "grid.methods=[3dgs,softmax_gs]"))
     assert [s["status"] for s in s1] == ["ok", "ok"] and not any(s.get("skipped") for s in s1)
     res = read_result(tmp_path / "patterns/circle4/softmax_gs/cap4/seed0/results.json")
     assert res.status == "ok" and res.steps == 12 and res.num_gaussians == 4
     assert res.per_view["psnr"] and res.curve[-1].step == 12
-    assert "lpips" in res.missing or "lpips" in res.metrics
+    assert "lpips" not in res.metrics and res.missing["lpips"] == find_weights("vgg").reason
+    assert res.missing["lpips"].startswith(f"no LPIPS weights configured ({WEIGHTS_ENV} is unset): run `python -m")
     s2 = run_experiment(tiny(tmp_path, "grid.methods=[3dgs,softmax_gs]"))
     assert all(s.get("skipped") for s in s2)
     # a changed config is not the same result: it runs again

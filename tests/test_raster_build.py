@@ -20,7 +20,7 @@ import torch
 
 from smgs.raster.buildcache import ExtensionSpec, build_key, source_closure
 from smgs.raster.buildlock import LOCK_FILE, TORCH_LOCK_FILE, BuildLock, BuildLockTimeout
-from smgs.raster.cpu import cpu_extension
+from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.jit import BuildError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -30,7 +30,7 @@ TINY = Path(__file__).parent / "data" / "tiny_ext"
 BUILD = """
 import json, sys
 from pathlib import Path
-from smgs.raster.cpu import cpu_extension
+from smgs.raster.cpu_build import cpu_extension
 src = Path(sys.argv[1])
 m = cpu_extension("smgs_test_tiny", [src / "tiny.cpp"], "test kernel", [src]).module()
 print(json.dumps({"answer": m.answer(), "file": m.__file__}))

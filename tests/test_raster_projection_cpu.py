@@ -17,7 +17,7 @@ import torch
 
 from smgs.camera import Camera
 from smgs.raster import projection
-from smgs.raster.cpu import cpu_extension
+from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.projection import _view, project_gaussians, quat_to_rotmat
 
 # every SIMD path of the compiled CPU kernels this host runs (tests/conftest.py)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from smgs.raster import cpu
+from smgs.raster import cpu, cpu_build
 
 CSRC = Path(cpu.__file__).parent / "csrc"
 CHECK = Path(__file__).parent / "simd_check.cpp"
@@ -31,7 +31,7 @@ def _cxx() -> str:
 
 def test_simd_accuracy_and_lanes(cpu_isa, tmp_path):
     exe = tmp_path / "simd_check"
-    subprocess.run([_cxx(), *FLAGS, *cpu.isa_flags(cpu_isa), f"-I{CSRC}", str(CHECK), "-o", str(exe)],
+    subprocess.run([_cxx(), *FLAGS, *cpu_build.isa_flags(cpu_isa), f"-I{CSRC}", str(CHECK), "-o", str(exe)],
                    check=True, capture_output=True, text=True)
     out = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout
     got = dict(line.split() for line in out.splitlines())
@@ -43,19 +43,19 @@ def test_simd_accuracy_and_lanes(cpu_isa, tmp_path):
 
 def test_isa_selection_errors(monkeypatch):
     with pytest.raises(ValueError, match="unknown CPU SIMD path"):
-        cpu.isa_flags("sse9")
-    monkeypatch.setenv(cpu.ISA_ENV, "sse9")
+        cpu_build.isa_flags("sse9")
+    monkeypatch.setenv(cpu_build.ISA_ENV, "sse9")
     with pytest.raises(ValueError, match="not a CPU SIMD path.*avx512, avx2, neon, scalar"):
-        cpu.select_isa()
-    foreign = next((i for i in cpu.ISAS if i not in cpu.host_isas()), None)
+        cpu_build.select_isa()
+    foreign = next((i for i in cpu_build.ISAS if i not in cpu_build.host_isas()), None)
     if foreign is None:
         pytest.skip("this host runs every path")
-    monkeypatch.setenv(cpu.ISA_ENV, foreign)
+    monkeypatch.setenv(cpu_build.ISA_ENV, foreign)
     with pytest.raises(RuntimeError, match=f"cannot run the {foreign} path"):
-        cpu.select_isa()
+        cpu_build.select_isa()
     assert not cpu.is_available() and "cannot run" in cpu.unavailable_reason()
-    monkeypatch.delenv(cpu.ISA_ENV)
-    assert cpu.select_isa() == cpu.host_isas()[0]
+    monkeypatch.delenv(cpu_build.ISA_ENV)
+    assert cpu_build.select_isa() == cpu_build.host_isas()[0]
 
 
 def test_renderer_reports_its_path(cpu_isa):
@@ -69,7 +69,7 @@ def test_neon_cross_compiles(tmp_path):
     OpenMP); -O1 for the core keeps the default suite short: the code is the same at -O3."""
     if shutil.which(CROSS) is None:
         pytest.skip(f"{CROSS} not installed (Debian: apt-get install g++-aarch64-linux-gnu)")
-    flags = [*FLAGS, "-Wall", "-Werror", *cpu.isa_flags("neon"), f"-I{CSRC}", "-c"]
+    flags = [*FLAGS, "-Wall", "-Werror", *cpu_build.isa_flags("neon"), f"-I{CSRC}", "-c"]
     jobs = [[CROSS, *flags, str(CHECK), "-o", str(tmp_path / "check.o")]]
     jobs += [[CROSS, *flags, "-O1", str(CSRC / f), "-o", str(tmp_path / f"{f}.o")]
              for f in ("cpu_fwd.cpp", "cpu_bwd.cpp", "cpu_bwd_soft.cpp")]

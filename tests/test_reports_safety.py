@@ -6,7 +6,8 @@ import json
 import os
 import stat
 
-from protocols.results import RunResult, atomic_write_text, write_result
+from protocols.results import RunResult, write_result
+from smgs.io.atomic import atomic_write_text
 from reports.build import MANIFEST, build_report
 
 PAYLOAD = "<img src=x onerror=alert(1)> [click](http://evil.example) `code` a|b"

@@ -4,7 +4,8 @@ import torch
 
 from smgs.metrics.ssim import ssim
 from smgs.raster import rasterize_splats
-from smgs.train.loss import SSIMLoss, l1, psnr, ray_variance
+from smgs.metrics.image import psnr
+from smgs.train.loss import SSIMLoss, l1, ray_variance
 
 
 def test_fast_ssim_matches_metric_value_and_gradient():

@@ -21,6 +21,7 @@ import torch
 from smgs.camera import Camera
 from smgs.data.images import (ResolutionRule, check_aspect, describe_resampling, find_image, image_size,
                               parallel_map, read_image, resize_image, resolve_auto_folder, scale_intrinsics)
+from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
                              camera_extent, split_description, split_every)
 
@@ -160,14 +161,13 @@ def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRul
     """Load a COLMAP scene.
 
     images: source folder under ``path`` ("images", "images_2", ...); overrides the rule's folder.
-    rule: a ResolutionRule or the name of a generic one (smgs.data.datasets.GENERIC_RULES: "native",
+    rule: a ResolutionRule or the name of a generic one (smgs.data.rules.GENERIC_RULES: "native",
         "3dgs" = downscale above 1600 px width as 3DGS ``-r -1``, "cpu"); ``factor``, ``max_width``
         and ``resample`` override its fields.
     test_every: every Nth image of the name-sorted list is test (index % N == 0); None: no test.
     Intrinsics are rescaled per axis to the size of the image actually loaded.
     """
     if isinstance(rule, str):
-        from smgs.data.datasets import get_generic_rule
         rule = get_generic_rule(rule)
     rule = rule.with_overrides(images=images, factor=factor, max_width=max_width, resample=resample)
     scene_dir = Path(path)

@@ -37,6 +37,7 @@ import torch
 from smgs.camera import Camera
 from smgs.data.images import (ResolutionRule, check_aspect, describe_resampling, image_size, parallel_map,
                               read_image, resize_image, scale_intrinsics)
+from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
                              camera_extent, split_description, split_every)
 
@@ -176,7 +177,6 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
     undistort: undistort non-zero distortion with OpenCV; False refuses such scenes.
     """
     if isinstance(rule, str):
-        from smgs.data.datasets import get_generic_rule
         rule = get_generic_rule(rule)
     rule = rule.with_overrides(factor=factor, max_width=max_width, resample=resample)
     if images == "auto":

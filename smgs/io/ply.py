@@ -29,14 +29,14 @@ temporary file in the same folder that replaces the target only when complete.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import plyfile
 from numpy.lib.recfunctions import structured_to_unstructured
+
+from smgs.io.atomic import atomic_file
 
 EXTRAS: tuple[str, ...] = ("gef_alpha", "softmax_beta", "softmax_gamma")
 """The Softmax-GS extra properties (raw, pre-activation values)."""
@@ -143,18 +143,8 @@ def write_ply(path: Path | str, splats: PlySplats) -> Path:
     comments = [f"{_COMMENT} {key} {value}" for key, value in splats.meta.items()]
     ply = plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex")], text=False, byte_order="<",
                           comments=comments)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            ply.write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(path) as f:
+        ply.write(f)
     return path
 
 

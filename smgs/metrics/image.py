@@ -62,7 +62,11 @@ def png_roundtrip(img: torch.Tensor) -> torch.Tensor:
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     """PSNR in dB for images in [0, 1] (3DGS ``utils/image_utils.psnr``); inf for equal images."""
-    mse = float(((pred.double() - gt.double()) ** 2).mean())
+    return psnr_from_mse(float(((pred.double() - gt.double()) ** 2).mean()))
+
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of a mean squared error of images in [0, 1]; inf for 0."""
     return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 

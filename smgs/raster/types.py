@@ -7,7 +7,6 @@ from typing import Literal
 
 import torch
 
-Mode = Literal["3dgs", "gef_only", "softmax_only", "softmax_gs"]
 MODES: tuple[str, ...] = ("3dgs", "gef_only", "softmax_only", "softmax_gs")
 Eq15 = Literal["solved", "printed"]
 

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
 from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
-from smgs.raster.cpu import cpu_extension, use_cpu_kernel
+from smgs.raster.cpu_build import cpu_extension, use_cpu_kernel
 from smgs.train.loss import SSIMLoss
 from smgs.train.loss import ray_variance as ray_variance_torch
 

@@ -12,7 +12,6 @@ faster at 128²); this module is its fallback on other devices and dtypes.
 
 from __future__ import annotations
 
-import math
 
 import torch
 import torch.nn.functional as F
@@ -150,9 +149,3 @@ def ray_variance(reg: torch.Tensor) -> torch.Tensor:
 
 def l1(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return F.l1_loss(x, y)
-
-
-def psnr(x: torch.Tensor, y: torch.Tensor) -> float:
-    """PSNR in dB of images in [0, 1] (x clamped to [0, 1] first); inf when equal."""
-    mse = float(((x.detach().clamp(0, 1) - y) ** 2).mean())
-    return math.inf if mse == 0 else -10.0 * math.log10(mse)

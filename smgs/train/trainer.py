@@ -7,7 +7,6 @@ mode switch; ``baselines.splatting`` wraps it in the ``Method`` interface. The c
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -18,6 +17,7 @@ import torch
 from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.device import check_backend, generator_state, resolve_device, restore_generator
+from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
 from smgs.raster.checks import NonFiniteInputError
 from smgs.raster.sh import eval_sh, num_sh_bases
@@ -261,7 +261,7 @@ class Trainer:
         self.step_count += 1
         mse = parts.mse
         logs = {"loss": loss_v, "l1": parts.l1, "ssim": parts.ssim,
-                "psnr": -10 * math.log10(mse) if mse > 0 else math.inf,
+                "psnr": psnr_from_mse(mse),
                 "num_gaussians": float(len(g)), "lr_means": lr}
         if var_b is not None:
             logs["var_beta"], logs["var_gamma"] = float(var_b.detach()), float(var_g.detach())
@@ -305,6 +305,3 @@ class Trainer:
                         self.device, state.get("device", "another kind of device"))
         self._stack = list(state["view_stack"])
         self.step_count = int(state["step"])
-
-    def config_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self.cfg)

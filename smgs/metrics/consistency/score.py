@@ -24,7 +24,7 @@ import torch
 from smgs.camera import Camera
 from smgs.metrics.consistency.flow import (ESTIMATORS, Flow, backward_warp, border_mask,
                                            geometric_flow, image_flow)
-from smgs.metrics.consistency.trajectory import Trajectory, frame_pairs
+from smgs.data.trajectory import Trajectory, frame_pairs
 from smgs.metrics.flip import FLIP_PPD, flip_available, flip_error_map
 from smgs.metrics.image import evaluate_images, quantize_8bit
 from smgs.metrics.result import Missing, json_value

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
+from smgs.io.atomic import atomic_write_text
 
 TRAJECTORY_FORMAT = "smgs-trajectory-v1"
 
@@ -125,9 +126,7 @@ class Trajectory:
 
     def save(self, path: str | Path) -> None:
         path = Path(path)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(self.to_json()) + "\n")
-        tmp.replace(path)
+        atomic_write_text(path, json.dumps(self.to_json()) + "\n")
 
     @staticmethod
     def load(path: str | Path) -> "Trajectory":
