@@ -1,10 +1,11 @@
 """The quadratic form -p = ½dᵀQd of elongated splats against float64 on every backend.
 
 Summed as a·dx² + 2b·dx·dy + c·dy² in float32 the terms of a splat with condition number κ cancel to
-an absolute error of ~eps·λmax·|d|² (up to ~3e-3 in alpha here, at κ = 1e6..1e8). Every backend
+an absolute error of ~eps·λmax·|d|² (1.2e-3 in alpha on these splats). Every backend
 evaluates the LDLᵀ form of the conic instead (splat_factor in splat_math.h, quadratic_form in
 reference.py), whose error is ~eps·√(λmax·q)·|d|: each one must match a float64 evaluation of the
-same float32 inputs to the float32-vs-float64 tolerance of the other tests (stability.OUT_ATOL).
+same float32 inputs to the float32-vs-float64 tolerance of the other tests (stability.OUT_ATOL);
+so must conics that are not positive definite, which keep their (unclamped) quadratic form.
 """
 
 import math
@@ -44,6 +45,17 @@ def splat(lmax: float, kappa: float, th: float, mean: tuple[float, float]) -> di
                 depths=torch.ones(1, dtype=f))
 
 
+def non_positive_definite() -> list[dict[str, torch.Tensor]]:
+    """Conics no projection produces, which keep their quadratic form: a = 0 (no LDLᵀ pivot, the
+    summed form's branch), a < 0, and indefinite with a > 0."""
+    out = []
+    for conic in ([0.0, 0.3, 0.05], [-0.02, 0.01, 0.04], [0.03, 0.05, 0.02]):
+        sc = splat(1.0, 1.0, 0.0, (30.2, 21.6))
+        sc["conics"] = torch.tensor([conic], dtype=torch.float32)
+        out.append(sc)
+    return out
+
+
 def exact_alpha(sc: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """alpha from q in float64 of the float32 inputs, and the pixels not within rounding of the
     reach thresholds (q <= 4.5, alpha >= 1/255), where a backend may decide either way."""
@@ -60,8 +72,7 @@ def exact_alpha(sc: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor
 
 def worst_error(backend: str, device: str = "cpu") -> float:
     worst = 0.0
-    for spec in elongated_splats():
-        sc = splat(*spec)
+    for sc in [splat(*spec) for spec in elongated_splats()] + non_positive_definite():
         want, clear = exact_alpha(sc)
         sc = {k: v.to(device) for k, v in sc.items()}
         out = rasterize_splats(sc["means2d"], sc["conics"], sc["opacities"], sc["colors"], sc["depths"],

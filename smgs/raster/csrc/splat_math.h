@@ -68,9 +68,10 @@ SMGS_HD inline float vsqrt_pos(float x) { return sqrtf(x); }
 // written, the three terms of an elongated splat (condition number κ) cancel to an absolute error of
 // ~eps·λmax·|d|², up to 0.1 in float32 at κ = 1e8; here both terms are >= 0 for a positive-definite
 // conic and only w = ±|u|/cos θ (u the distance across the thin axis) cancels, so the error drops to
-// ~eps·√(λmax·q)·|d| (tests/test_raster_quad.py). The factor is formed once per splat in double (splat_factor)
-// and stored in the conic's three slots of the packed row: (½a, b/a, ½s). a = 0 (never positive
-// definite) cannot be pivoted on: it stores (0, b, ½c) and is evaluated as b·dx·dy + ½c·dy².
+// ~eps·√(λmax·q)·|d| (tests/test_raster_quad.py). The factor is formed once per splat in double
+// (splat_factor) and stored in the conic's three slots of the packed row: (½a, b/a, ½s); it costs
+// fewer operations per pixel than the summed form. a = 0 (never positive definite) cannot be
+// pivoted on: it stores (0, b, ½c) and is evaluated as b·dx·dy + ½c·dy².
 struct Factor {
   float ha, r, hs;
 };
