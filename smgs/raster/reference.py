@@ -21,6 +21,7 @@ inf·0 or a catastrophic cancellation (each is exercised by tests/test_raster_st
 * the past colour is rescaled by r = ā_past/a_past written without dividing by a_past:
   r = m·(s·w_past·(1-T_orig)/(â_past + â_cur) + 1 - s), and line 21 as T_past = T + a_past·(1 - r),
   which is T exactly where the softmax changes nothing (s = 0);
+* -p = ½dᵀQd in the LDLᵀ form of the conic, factored once per splat in float64 (quadratic_form);
 * (-p)^α uses q = max(-p, 0) and defines q^α and its gradients as 0 at q = 0;
 * γ·|Δd| is 0 when Δd = 0 (γ may be inf), and capped where s underflows to 0 anyway.
 
@@ -47,6 +48,35 @@ def _gef_power(q: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     pos = q > 0
     q_safe = torch.where(pos, q, torch.ones_like(q))
     return torch.where(pos, q_safe ** alpha, torch.zeros_like(q))
+
+
+def conic_factor(conic: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(½a, b/a, ½(c - b²/a)) of one conic (a, b, c), formed in float64 (the products of float32
+    inputs are exact there) and rounded to the conic's dtype; (0, b, ½c) where a = 0. The compiled
+    backends store the same factor (splat_factor in splat_math.h). No gradient flows through it."""
+    a, b, c = conic.detach().double().unbind()
+    if a == 0:
+        return tuple(v.to(conic.dtype) for v in (a, b, 0.5 * c))
+    return tuple(v.to(conic.dtype) for v in (0.5 * a, b / a, 0.5 * ((a * c - b * b) / a)))
+
+
+def quadratic_form(dx: torch.Tensor, dy: torch.Tensor, conic: torch.Tensor) -> torch.Tensor:
+    """q = -p = ½(a·dx² + 2b·dx·dy + c·dy²), unclamped, in the LDLᵀ form ½a·w² + ½s·dy² with
+    w = dx + (b/a)·dy: summed as written, the terms of an elongated splat cancel (an absolute error
+    up to ~0.1 in float32 at condition number 1e8); here both terms are >= 0 for a positive-definite
+    conic. The conic's gradient is the closed form (½dx², dx·dy, ½dy²), attached by a term that is
+    exactly zero in value, so autograd never differentiates the division by a."""
+    ha, r, hs = conic_factor(conic)
+    if ha != 0:
+        w = dx + r * dy
+        q = ha * (w * w) + hs * (dy * dy)
+    else:
+        q = r * (dx * dy) + hs * (dy * dy)
+    if conic.requires_grad:
+        dxd, dyd = dx.detach(), dy.detach()
+        g = 0.5 * (conic[0] * dxd * dxd + conic[2] * dyd * dyd) + conic[1] * dxd * dyd
+        q = q + (g - g.detach())
+    return q
 
 
 def softmax_step(T, A, C, d_past, p_past, a, p, d, c, beta, gamma, eq15: str):
@@ -154,8 +184,7 @@ def rasterize_splats_reference(
     for k in _sorted_order(depths).tolist():
         dx = px - means2d[k, 0]
         dy = py - means2d[k, 1]
-        ca, cb, cc = conics[k, 0], conics[k, 1], conics[k, 2]
-        q = torch.clamp(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy, min=0.0)  # -p >= 0
+        q = torch.clamp(quadratic_form(dx, dy, conics[k]), min=0.0)  # -p >= 0
         e = _gef_power(q, alpha[k]) if use_gef else q
         kern = torch.exp(-torch.clamp(e, max=-K.EXP_ARG_MIN))
         a = torch.clamp(opacities[k] * kern, max=K.ALPHA_MAX)

@@ -16,6 +16,7 @@
 namespace smgs {
 
 // Packed per-splat row (depth order): parameters, then colours, then regularised values.
+// P_CA..P_CC: in a parameter row the conic's factor (splat_factor), in a gradient row dL/d(a, b, c).
 enum { P_MX = 0, P_MY, P_CA, P_CB, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL };
 
 struct Scene {

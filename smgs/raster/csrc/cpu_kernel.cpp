@@ -159,9 +159,10 @@ static Prepared prepare(const at::Tensor& means2d, const at::Tensor& conics, con
     float* r = pk + j * S;
     r[P_MX] = m2[2 * i];
     r[P_MY] = m2[2 * i + 1];
-    r[P_CA] = cn[3 * i];
-    r[P_CB] = cn[3 * i + 1];
-    r[P_CC] = cn[3 * i + 2];
+    const Factor f = splat_factor(cn[3 * i], cn[3 * i + 1], cn[3 * i + 2]);  // the conic's slots
+    r[P_CA] = f.ha;
+    r[P_CB] = f.r;
+    r[P_CC] = f.hs;
     r[P_O] = op[i];
     r[P_D] = dp[i];
     r[P_AL] = al ? al[i] : 1.f;

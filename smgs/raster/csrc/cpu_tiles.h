@@ -157,7 +157,7 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
     unsigned anyq = 0;
     for (int v = 0; v < NV; ++v) {
       pairs += popcount(mnot(done[v]));
-      k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+      k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
       inq[v] = k[v].q <= VF(kQMax);
       anyq |= bits(inq[v]);
     }
@@ -357,7 +357,7 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
       VM reach[NV];
       unsigned anyq = 0, anyr = 0;
       for (int v = 0; v < NV; ++v) {
-        k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+        k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
         reach[v] = mand(hv[v], k[v].q <= VF(kQMax));
         anyq |= bits(reach[v]);
       }
@@ -443,7 +443,7 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
     VM reach[NV];
     unsigned anyq = 0, anyr = 0;
     for (int v = 0; v < NV; ++v) {
-      k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+      k[v] = splat_quad(L[v].px, L[v].py, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
       reach[v] = mand(VF(float(i)) < last[v], k[v].q <= VF(kQMax));
       anyq |= bits(reach[v]);
     }
@@ -557,7 +557,7 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
       gA[v] = sel(rv, gAn, gA[v]);
       T[v] = sel(rv, Tpre, T[v]);
       const KernGrad<VF> kg =
-          splat_kernel_bwd<GEF>(k[v], ab[v], s[P_CA], s[P_CB], s[P_CC], s[P_O], s[P_AL], g_a, g_p);
+          splat_kernel_bwd<GEF>(k[v], ab[v], Factor{s[P_CA], s[P_CB], s[P_CC]}, s[P_O], s[P_AL], g_a, g_p);
       gv[P_MX] = gv[P_MX] + sel(rv, kg.mx, zero);
       gv[P_MY] = gv[P_MY] + sel(rv, kg.my, zero);
       gv[P_CA] = gv[P_CA] + sel(rv, kg.ca, zero);

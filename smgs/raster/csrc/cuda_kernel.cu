@@ -97,9 +97,11 @@ __global__ void prepare_kernel(SplatsIn in, int W, int H, int S, float* pk, int3
   float* r = pk + int64_t(i) * S;
   r[P_MX] = in.means2d[2 * i];
   r[P_MY] = in.means2d[2 * i + 1];
-  r[P_CA] = in.conics[3 * i];
-  r[P_CB] = in.conics[3 * i + 1];
-  r[P_CC] = in.conics[3 * i + 2];
+  const float ca = in.conics[3 * i], cb = in.conics[3 * i + 1], cc = in.conics[3 * i + 2];
+  const Factor f = splat_factor(ca, cb, cc);  // the conic's slots hold its factor
+  r[P_CA] = f.ha;
+  r[P_CB] = f.r;
+  r[P_CC] = f.hs;
   r[P_O] = in.opacities[i];
   r[P_D] = in.depths[i];
   r[P_AL] = in.alpha ? in.alpha[i] : 1.f;
@@ -109,7 +111,7 @@ __global__ void prepare_kernel(SplatsIn in, int W, int H, int S, float* pk, int3
   for (int c = 0; c < in.nreg; ++c) r[P_COL + in.nch + c] = in.reg_values[int64_t(i) * in.nreg + c];
   int32_t b[4] = {0, -1, 0, -1};
   // a <= o·1, so o < 1/255 never reaches (NaN never reaches either)
-  const bool vis = (r[P_O] >= kAlphaMin) && splat_box(r[P_MX], r[P_MY], r[P_CA], r[P_CB], r[P_CC], W, H, b);
+  const bool vis = (r[P_O] >= kAlphaMin) && splat_box(r[P_MX], r[P_MY], ca, cb, cc, W, H, b);
   for (int c = 0; c < 4; ++c) box[4 * i + c] = b[c];
   ntiles[i] = vis ? int64_t(b[1] / kTileSize - b[0] / kTileSize + 1) * (b[3] / kTileSize - b[2] / kTileSize + 1)
                   : 0;
@@ -225,7 +227,7 @@ __global__ void __launch_bounds__(kBlock) fwd_kernel(Scene sc, FwdOut o, int B) 
     for (int jj = 0; jj < nb && !done; ++jj) {
       const float* s = rows + jj * S;
       ++pairs;
-      const Quad<float> k = splat_quad(P.px, P.py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+      const Quad<float> k = splat_quad(P.px, P.py, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
       if (!(k.q <= kQMax)) continue;
       const Absorb<float> ab = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]);
       if (!(ab.a >= kAlphaMin)) continue;
@@ -355,7 +357,7 @@ __global__ void __launch_bounds__(kBlock) bwd_kernel(Scene sc, BwdIn in, BwdWork
         bool rv = false;
         float wr = 0.f;
         if (hv) {
-          const Quad<float> k = splat_quad(P.px, P.py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+          const Quad<float> k = splat_quad(P.px, P.py, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
           if (k.q <= kQMax) {
             const Absorb<float> ab = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]);
             rv = ab.a >= kAlphaMin;  // before `last`: composited, never stopped
@@ -415,7 +417,7 @@ __global__ void __launch_bounds__(kBlock) bwd_kernel(Scene sc, BwdIn in, BwdWork
       float g_mx = 0.f, g_my = 0.f, g_ca = 0.f, g_cb = 0.f, g_cc = 0.f, g_o = 0.f, g_d = 0.f, g_al = 0.f,
             g_be = 0.f, g_ga = 0.f;
       if (i < mylast) {
-        const Quad<float> k = splat_quad(P.px, P.py, s[P_MX], s[P_MY], s[P_CA], s[P_CB], s[P_CC]);
+        const Quad<float> k = splat_quad(P.px, P.py, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
         Absorb<float> ab{};
         if (k.q <= kQMax) {
           ab = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]);
@@ -494,7 +496,7 @@ __global__ void __launch_bounds__(kBlock) bwd_kernel(Scene sc, BwdIn in, BwdWork
           gA = gAn;
           T = Tpre;
           const KernGrad<float> kg =
-              splat_kernel_bwd<GEF>(k, ab, s[P_CA], s[P_CB], s[P_CC], s[P_O], s[P_AL], g_a, g_p);
+              splat_kernel_bwd<GEF>(k, ab, Factor{s[P_CA], s[P_CB], s[P_CC]}, s[P_O], s[P_AL], g_a, g_p);
           g_mx = kg.mx;
           g_my = kg.my;
           g_ca = kg.ca;
