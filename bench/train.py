@@ -22,14 +22,14 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:       # `python bench/train.py` from a checkout
     sys.path.insert(0, str(ROOT))
 
-from smgs.camera import Camera  # noqa: E402
+from smgs.camera import Camera  # noqa: E402  (smgs before torch: it sets the OpenMP wait policy)
 from smgs.data.scene import Scene, View, camera_extent  # noqa: E402
+
+import torch  # noqa: E402
 
 
 def procedural_scene(size: int = 96, n_views: int = 4) -> Scene:

@@ -38,6 +38,7 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+import smgs  # noqa: F401  (before torch: smgs sets torch's OpenMP wait policy, smgs/__init__.py)
 import torch
 
 from smgs.io.atomic import atomic_write_text

@@ -1,0 +1,44 @@
+"""smgs sets torch's OpenMP threads to wait passively (unless the user chose), before torch loads:
+spinning waiters cost several times the run time on a loaded machine (smgs/__init__.py)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+# records the policy at the moment torch is first imported (OpenMP reads it when torch loads)
+PROBE = """
+import os, sys
+seen = []
+class Spy:
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" and not seen:
+            seen.append(os.environ.get("OMP_WAIT_POLICY"))
+        return None
+sys.meta_path.insert(0, Spy())
+import {mod}
+import torch
+print(seen[0], "smgs" in sys.modules)
+"""
+
+
+def _policy(mod: str, preset: str | None) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset is not None:
+        env["OMP_WAIT_POLICY"] = preset
+    env["PYTHONPATH"] = str(ROOT)
+    out = subprocess.run([sys.executable, "-c", PROBE.format(mod=mod)], env=env, cwd=ROOT,
+                         capture_output=True, text=True, timeout=120, check=True)
+    return out.stdout.split()
+
+
+@pytest.mark.parametrize("mod", ["smgs", "protocols.cell", "protocols.patterns"])
+def test_entry_points_set_passive_before_torch(mod):
+    assert _policy(mod, None) == ["PASSIVE", "True"]
+
+
+def test_a_users_choice_is_kept():
+    assert _policy("smgs", "active") == ["active", "True"]
