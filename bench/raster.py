@@ -10,7 +10,7 @@ load. Columns: forward ms, forward + backward ms, splat-pixel pairs the backend 
 (forward; pairs / fwd+bwd time), peak resident memory of a forward+backward above the resident set
 before it, and each mode's time relative to ``3dgs`` on the same scene and backend (the median of
 the per-round ratios). The load average is printed with the table; ratios between modes are more
-stable than absolute times. To compare two builds of the CPU kernel, see ``bench/kernel_ab.py``.
+stable than absolute times. To compare two source trees of the renderer, see ``bench/ab.py``.
 
 Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
 scenes made by the same recipe at other sizes. The reference backend is dense (every splat at every
@@ -29,17 +29,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from smgs import Camera  # noqa: E402
+from smgs import Camera  # noqa: E402  (smgs before torch: it sets the OpenMP wait policy)
 from smgs.metrics.timing import device_name, track_peak_memory  # noqa: E402
 from smgs.raster import MODES, backend_available, rasterize  # noqa: E402
-from smgs.raster import cpu_build  # noqa: E402
 from smgs.raster.projection import project_gaussians  # noqa: E402
+
+import torch  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "bench"
 FILE_SCENES = {"10k_256": "scene_10k_256.npz", "100k_512": "scene_100k_512.npz"}
@@ -202,6 +202,8 @@ def main(argv=None) -> None:
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--reference-max-pairs", type=float, default=5e6)
     args = ap.parse_args(argv)
+
+    from smgs.raster import cpu_build   # here, not at the top: bench/ab.py imports this file into older trees
 
     print(f"# smgs renderer benchmark: {device_name('cpu')}, CPU SIMD path {cpu_build.isa_in_use()} "
           f"(${cpu_build.ISA_ENV}), torch {torch.__version__}, k_max {args.k_max}, "

@@ -175,15 +175,15 @@ class Table:
         g = self.grid()
         n_keys = len(self.key_columns)
         align = [":--" if i < n_keys or not g.numeric[i] else "--:" for i in range(len(g.header))]
-        lines = ["| " + " | ".join(_esc(h) for h in g.header) + " |", "|" + "|".join(align) + "|"]
+        lines = ["| " + " | ".join(md_text(h) for h in g.header) + " |", "|" + "|".join(align) + "|"]
         for cells in g.rows:
-            lines.append("| " + " | ".join(_esc(c.markdown()) for c in cells) + " |")
+            lines.append("| " + " | ".join(md_text(c.markdown()) for c in cells) + " |")
         out = []
         if self.title:
             out.append(f"**{self.title}**" if not self.title.startswith("#") else self.title)
             out.append("")
         out += lines
-        foot = [f"{superscript(i + 1)} {_esc(t)}  " for i, t in enumerate(g.notes)]
+        foot = [f"{superscript(i + 1)} {md_text(t)}  " for i, t in enumerate(g.notes)]
         if foot or self.notes:
             out.append("")
         out += foot
@@ -266,9 +266,6 @@ def md_text(text: object) -> str:
     data, never markup), table pipes escaped, no link target, one line."""
     s = html.escape(" ".join(str(text).split()), quote=False)
     return s.replace("|", "\\|").replace("](", "]\\(")
-
-
-_esc = md_text
 
 
 class Footnotes:

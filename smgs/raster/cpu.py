@@ -4,10 +4,10 @@ hand-written backward.
 Built just in time with ``torch.utils.cpp_extension.load`` on first use and cached (in
 ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``) by a key of the sources, flags and CPU
 kind (``smgs.raster.buildcache``); later processes load the cached library in well under a second.
-The sources are ``csrc/cpu_kernel.cpp`` (torch glue, binning, sort) and the compositing core ``csrc/cpu_{fwd,bwd,bwd_soft}.cpp`` over ``cpu_tiles.h``, with the SIMD
-layer ``simd.h``, the threads ``parallel.h`` and the per-splat math ``splat_math.h`` (shared with the
-CUDA backend). Same images and gradients as ``smgs.raster.reference`` to float32 rounding
-(tests/test_raster_cpu.py states the tolerances).
+The sources are ``csrc/cpu_kernel.cpp`` (torch glue, binning, sort) and the compositing core
+``csrc/cpu_{fwd,bwd,bwd_soft}.cpp`` over ``cpu_tiles.h``, with the SIMD layer ``simd.h``, the
+threads ``parallel.h`` and the per-splat math ``splat_math.h`` (shared with the CUDA backend). Same images and gradients as ``smgs.raster.reference`` to float32
+rounding (tests/test_raster_cpu.py states the tolerances).
 
 SIMD path: avx512, avx2 (x86-64-v3), neon (aarch64) or scalar, the best the host runs unless
 ``SMGS_CPU_ISA`` names one (``isa()`` says which is in use). The renderer's threads are its own
