@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from protocols.eval_config import EvalConfig
 from smgs.data.scene import DatasetNotFoundError, Scene
 
 DatasetMissing = DatasetNotFoundError
@@ -25,7 +26,7 @@ def load_scene_for(cfg: dict) -> Scene:
     kind = ds["kind"]
     scene = str(cfg["scene"])
     test_every = int(cfg["protocol"].get("test_every", 8))
-    traj = TRAJECTORY_BETWEEN if cfg.get("eval", {}).get("consistency") else None
+    traj = TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None
     if kind == "pattern":
         from smgs.data.patterns import pattern_scene
 

@@ -16,6 +16,7 @@ import torch
 from PIL import Image
 
 from protocols.datasets import load_scene_for
+from protocols.eval_config import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
 from protocols.method_config import method_config
@@ -135,9 +136,9 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.hparams = str(desc.get("hparams", ""))
     steps = int(desc["config"]["steps"]) if "config" in desc and "steps" in desc["config"] else \
         int(method_config(cfg)["steps"])
-    ev = cfg["eval"]
+    ev = EvalConfig.of(cfg)
     plan = list(desc.get("plan", []))
-    if not ev.get("consistency"):
+    if not ev.consistency:
         plan.append("view consistency: off (eval.consistency=false)")
     elif not scene.trajectory and len(scene.test) < 2:
         plan.append("view consistency: off (no video trajectory and fewer than 2 test views)")
@@ -156,7 +157,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     curve = [CurvePoint(**c) for c in progress["curve"]]
     if start:
         log.info("resumed from step %d (%.1f s of training)", start, clock.seconds)
-    checks = set(eval_steps(steps, list(ev["fractions"])))
+    checks = set(eval_steps(steps, list(ev.fractions)))
     every = int(cfg.get("checkpoint_every") or 0)
     bar = progress_bar(steps, f"{cfg['scene']}/{name}", initial=start, position=1, leave=False)
     with track_peak_memory(device) as peak:
@@ -166,7 +167,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             done = step + 1
             if done in checks:
                 with clock.exclude("eval"):
-                    last_psnr = quick_psnr(method, scene.test, test_rgb, bool(ev.get("quantize", True)))
+                    last_psnr = quick_psnr(method, scene.test, test_rgb, ev.quantize)
                 curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
                 log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
                          method.num_gaussians())
@@ -199,13 +200,13 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             gts.append(gt)
             names.append(v.name)
             within.append(out.stats.frac_within_kmax)
-    if ev.get("save_renders", True):
+    if ev.save_renders:
         for n, img in zip(names, renders):
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
-        save_view_images(run_dir / "renders", names, renders, gts, int(ev.get("viewer_views", 3)))
-    m = evaluate_images(renders, gts, names, lpips_net=ev.get("lpips_net", "vgg"),
-                        lpips_weights=ev.get("lpips_weights"), lpips_input=ev.get("lpips_input", "3dgs"), flip=bool(ev.get("flip", True)),
-                        quantize=bool(ev.get("quantize", True)), device=device)
+        save_view_images(run_dir / "renders", names, renders, gts, ev.viewer_views)
+    m = evaluate_images(renders, gts, names, lpips_net=ev.lpips_net,
+                        lpips_weights=ev.lpips_weights, lpips_input=ev.lpips_input, flip=ev.flip,
+                        quantize=ev.quantize, device=device)
     means = m.means()
     result.metrics = {"psnr": means["psnr"], "ssim": means["ssim"]}
     result.per_view = {"name": names, "psnr": m.psnr, "ssim": m.ssim}
@@ -218,7 +219,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.lpips_net = m.lpips_name
     with fps_slot(cfg) as fps_conditions:
         fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
-                                 warmup=int(ev.get("fps_warmup", 1)), repeats=int(ev.get("fps_repeats", 5)),
+                                 warmup=ev.fps_warmup, repeats=ev.fps_repeats,
                                  device=device)
     result.render_fps = fps.fps
     result.render_device = fps.device
@@ -229,7 +230,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
     result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
     diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
-                            "metrics_on_8bit": bool(ev.get("quantize", True)),
+                            "metrics_on_8bit": ev.quantize,
                             "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
     mode = desc.get("config", {}).get("mode", name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
@@ -238,7 +239,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     if callable(params):
         diag["params"] = {k: _quantiles(v) for k, v in params().items()}
     result.diagnostics = diag
-    if ev.get("consistency") and (scene.trajectory or len(scene.test) >= 2):
+    if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
             result.consistency = consistency(method, scene, run_dir, ev)
     result.status = "ok"
@@ -249,7 +250,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     return result
 
 
-def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
+def consistency(method, scene, run_dir: Path, ev: EvalConfig) -> dict:
     """Table 4 for this run (paper supp. Sec. 7): a video of 128 frames between consecutive test
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
     pixels. Scored on this method's own mask; the trajectory is saved beside the results."""
@@ -266,7 +267,7 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
         traj.save(run_dir / "trajectory.json")
         traj = traj.cameras()
     # FLIP and flow cost grows with the image: render the video at most max_width wide
-    max_w = int(ev.get("consistency_max_width") or 0)
+    max_w = ev.consistency_max_width or 0
     if max_w and traj[0].width > max_w:
         traj = [c.scaled(max_w / c.width) for c in traj]
 
@@ -275,10 +276,10 @@ def consistency(method, scene, run_dir: Path, ev: dict) -> dict:
         return out.rgb, out.depth
 
     row = consistency_row(render, traj, scene=scene.name, method=method.name if hasattr(method, "name") else "",
-                          test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.get("flow", "geometric"))
+                          test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow)
     out = row.to_json()
     pairs = out.get("scores", {}).get(str(row.step), {}).get("per_pair", [])
-    if ev.get("save_renders", True):
+    if ev.save_renders:
         save_popping_strip(run_dir / "consistency", render, traj, pairs, row.step)
     out["mask"] = "per-method"
     out["width"], out["height"] = traj[0].width, traj[0].height

@@ -1,5 +1,6 @@
 """Gaussians: activations, initial values, γ scaling; config dicts and presets."""
 
+import dataclasses
 import math
 
 import pytest
@@ -97,3 +98,20 @@ def test_config_from_dict_roundtrip_and_errors():
     assert c.gaussians.beta.init == 5.0 and isinstance(c.gaussians.beta.init, float)
     with pytest.raises(ValueError, match="unknown key"):
         from_dict(TrainConfig, {"loss": {"lamda_dssim": 0.1}})
+
+
+def test_presets_apply_to_their_section_at_any_depth_and_alone():
+    """A section with a preset (optim by name, densify by budget) is built from that preset first
+    wherever it is built, also on its own; the renderer's constants are the trainer's defaults."""
+    from smgs.raster import constants as K
+    from smgs.train.config import DensifyConfig, OptimConfig
+
+    assert from_dict(OptimConfig, {"name": "3dgs2023+softmaxgs_patterns", "beta_lr": 1e-3}) == \
+        dataclasses.replace(HPARAMS["3dgs2023+softmaxgs_patterns"], beta_lr=1e-3)
+    assert from_dict(DensifyConfig, {"budget": "5pct", "cap": 7}) == densify_config("5pct", cap=7)
+    assert from_dict(TrainConfig, {"densify": "light"}).densify == densify_config("light")
+    with pytest.raises(ValueError, match="budget 'cap' needs cap"):
+        from_dict(TrainConfig, {"densify": {"budget": "cap"}})
+    with pytest.raises(TypeError, match=r"densify\.cap='many': expected an int"):
+        from_dict(TrainConfig, {"densify": {"budget": "cap", "cap": "many"}})
+    assert (TrainConfig().k_max, TrainConfig().t_min) == (K.DEFAULT_K_MAX, K.T_MIN)

@@ -11,7 +11,9 @@ import dataclasses
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from typing import Any, Callable, Literal, TypeVar
+
+from smgs.raster import constants as K
 
 T = TypeVar("T")
 
@@ -226,10 +228,10 @@ class TrainConfig:
     mode: str = "softmax_gs"
     steps: int = 30_000
     seed: int = 0
-    k_max: int = 128
+    k_max: int = K.DEFAULT_K_MAX
     eq15: Literal["solved", "printed"] = "solved"
     backend: str = "auto"
-    t_min: float = 1e-4
+    t_min: float = K.T_MIN
     sh_degree_interval: int = 1000
     random_background: bool = False
     check_finite_every: int = 1
@@ -265,7 +267,7 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
     if _is_dataclass_type(tp):
         if isinstance(value, tp):
             return value
-        if not isinstance(value, dict):
+        if not isinstance(value, dict) and not (isinstance(value, str) and tp in PRESETS):
             raise TypeError(f"{where}: expected a mapping for {tp.__name__}, got {type(value).__name__}")
         return from_dict(tp, value, _where=where)
     if origin in (typing.Union, types.UnionType):
@@ -302,44 +304,49 @@ def _scalar(tp: Any, value: Any, where: str) -> Any:
     return value
 
 
-def from_dict(cls: type[T], data: dict[str, Any] | None, _where: str = "") -> T:
+def _optim_preset(name: str | None, **overrides: Any) -> OptimConfig:
+    base = hparams(name) if name is not None else OptimConfig()   # an unknown name is an error
+    return dataclasses.replace(base, **overrides)
+
+
+def _densify_preset(budget: str | None, **overrides: Any) -> DensifyConfig:
+    return densify_config(budget if budget is not None else "full", **overrides)
+
+
+# Sections built from a named preset: the dict (or a bare string) names it under the key, the other
+# keys then override the preset's values.
+PRESETS: dict[type, tuple[str, Callable[..., Any]]] = {
+    OptimConfig: ("name", _optim_preset),
+    DensifyConfig: ("budget", _densify_preset),
+}
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | str | None, _where: str = "") -> T:
     """Build a (nested) config dataclass from a plain dict (e.g. ``OmegaConf.to_container``).
-    Unknown keys are an error that lists the known ones; missing keys keep their defaults. A
-    ``TrainConfig`` dict may give ``optim`` as a hyperparameter-set name and ``densify`` may name
-    a ``budget``: the preset is applied first, then the other keys."""
+    Unknown keys are an error that lists the known ones; missing keys keep their defaults (a field
+    without a default is an error naming it). A section with a preset (``PRESETS``: ``optim`` by
+    hyperparameter-set name, ``densify`` by ``budget``) may be given as that name alone; the preset
+    is applied first, then the other keys."""
+    preset = PRESETS.get(cls)
+    if isinstance(data, str) and preset:
+        data = {preset[0]: data}
     data = dict(data or {})
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
+    fields = dataclasses.fields(cls)
+    names = {f.name for f in fields}
     unknown = set(data) - names
     if unknown:
         raise ValueError(f"{cls.__name__}{' at ' + _where if _where else ''}: unknown key(s) "
                          f"{sorted(unknown)}; known: {sorted(names)}")
-    kwargs: dict[str, Any] = {}
-    for k, v in data.items():
-        where = f"{_where}.{k}" if _where else k
-        if cls is TrainConfig and k == "optim" and isinstance(v, (str, dict)):
-            v = {"name": v} if isinstance(v, str) else v
-            base = hparams(v["name"]) if v.get("name") is not None else OptimConfig()  # unknown: an error
-            kwargs[k] = dataclasses.replace(base, **{kk: _convert(hints_of(OptimConfig)[kk], vv, where)
-                                                     for kk, vv in v.items() if _check_key(OptimConfig, kk, where)})
-            continue
-        if cls is TrainConfig and k == "densify" and isinstance(v, dict):
-            extra = {kk: vv for kk, vv in v.items() if kk != "budget" and _check_key(DensifyConfig, kk, where)}
-            kwargs[k] = densify_config(v.get("budget", "full"), **extra)
-            continue
-        kwargs[k] = _convert(hints[k], v, where)
+    kwargs = {k: _convert(hints[k], v, f"{_where}.{k}" if _where else k) for k, v in data.items()}
+    if preset:
+        key, make = preset
+        return make(kwargs.pop(key, None), **kwargs)
+    required = [f.name for f in fields if f.name not in kwargs and f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING]
+    if required:
+        raise ValueError(f"{cls.__name__}{' at ' + _where if _where else ''}: missing key(s) {required}")
     return cls(**kwargs)
-
-
-def hints_of(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
-def _check_key(cls: type, key: str, where: str) -> bool:
-    names = {f.name for f in dataclasses.fields(cls)}
-    if key not in names:
-        raise ValueError(f"{cls.__name__} at {where}: unknown key {key!r}; known: {sorted(names)}")
-    return True
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:
