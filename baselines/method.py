@@ -2,11 +2,13 @@
 
 What changed from nerfbaselines, and why:
 
-* Set-up is the constructor ``cls(scene, config, name=..., device=...)`` with a plain nested dict
-  ``config`` (Hydra-free); the registry merges the method's fixed settings first and rejects
-  conflicts. ``device`` is the run's ``torch.device`` (already resolved and checked, e.g.
-  ``cuda:0`` or ``cpu``): every tensor the method makes lives there, and ``load`` maps a checkpoint
-  written on any device onto it.
+* Set-up is the constructor ``cls(scene, config, name=..., device=..., run=...)`` with a plain
+  nested dict ``config`` (the method's own settings, Hydra-free); the registry merges the method's
+  fixed settings first and rejects conflicts. ``device`` is the run's ``torch.device`` (already
+  resolved and checked, e.g. ``cuda:0`` or ``cpu``): every tensor the method makes lives there, and
+  ``load`` maps a checkpoint written on any device onto it. ``run`` is what the protocol asks of
+  the run in neutral terms (``RunSettings``: steps, seed, budget, cap, ...); each method maps it
+  onto its own settings (None outside a protocol run).
 * A method declares what it needs from a scene as data (``SceneNeeds``: required and optional
   scene capabilities, the same names as ``Scene.capabilities``); the registry checks a scene before
   set-up, so "no SfM points" fails with a sentence instead of a KeyError deep inside a method.
@@ -17,7 +19,9 @@ What changed from nerfbaselines, and why:
 * ``save``/``load`` restore everything a resumed run needs (optimiser moments, densification
   statistics, random generators), not just the weights.
 * ``describe()`` gives the resolved config, the hyperparameter-set name and the stages the run
-  left out (for results.json and the run log).
+  left out (for results.json and the run log); ``parameter_values()`` the learned per-primitive
+  values the report summarises (may be empty); ``prepare()`` builds compiled code before the
+  harness starts the train clock.
 """
 
 from __future__ import annotations
@@ -60,6 +64,26 @@ class SceneNeeds:
         return [f"scene has no {c}" for c in sorted(set(self.optional) - have)]
 
 
+@dataclass(frozen=True)
+class RunSettings:
+    """What the protocol asks of one run, in terms every method reads the same way; a method maps
+    them onto its own settings (the built-ins: ``baselines.trainer_settings``)."""
+
+    steps: int                       # train_step is called this many times
+    seed: int
+    budget: str                      # the budget's name: full, light, mini, 5pct, cap16, mcmc_256, ...
+    preset: str                      # its kind: full | light | mini | 5pct | cap | mcmc
+    grad_threshold: float | None     # the densification gradient threshold that defines it (None: MCMC)
+    cap: int | None                  # a hard maximum number of primitives (None: none)
+    schedule_steps: int | None       # the run length the protocol's schedules are written for (None: keep the method's)
+    backend: str = "auto"            # the renderer backend asked for (auto | cpu | cuda | reference)
+
+
+# What the registry checks a method class for before creating it.
+METHOD_FUNCTIONS: tuple[str, ...] = ("train_step", "render", "num_gaussians", "save", "load", "describe",
+                                     "parameter_values", "prepare")
+
+
 @runtime_checkable
 class Method(Protocol):
     """A trainable, renderable scene representation. The harness owns the loop::
@@ -71,9 +95,16 @@ class Method(Protocol):
     """
 
     needs: ClassVar[SceneNeeds]
+    name: str                        # the registered name it was created under
 
     def __init__(self, scene: Scene, config: dict[str, Any] | None = None, *, name: str | None = None,
-                 device: torch.device) -> None:
+                 device: torch.device, run: RunSettings | None = None) -> None:
+        ...
+
+    def prepare(self) -> str:
+        """Build or load whatever compiled code training and rendering use (called before the
+        train clock starts: a build is never training time); returns a note for the log, e.g. the
+        renderer backend ("" when there is nothing to build)."""
         ...
 
     def train_step(self, step: int) -> dict[str, float]:
@@ -98,6 +129,11 @@ class Method(Protocol):
 
     def describe(self) -> dict[str, Any]:
         """{"method", "config", "hparams", "step", "plan": [what the run uses / leaves out]}."""
+        ...
+
+    def parameter_values(self) -> dict[str, torch.Tensor]:
+        """Learned per-primitive values worth summarising in the report (name -> 1-D tensor);
+        {} when there are none."""
         ...
 
 

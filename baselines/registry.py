@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from baselines.method import Method, MethodSpec, SceneNeeds
+from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, RunSettings, SceneNeeds
 from smgs.data.scene import Scene
 from smgs.device import resolve_device
 
@@ -97,9 +97,10 @@ def _import(target: str) -> Any:
 def method_class(name: str) -> type:
     spec = get_spec(name)
     cls = _import(spec.target) if isinstance(spec.target, str) else spec.target
-    for attr in ("train_step", "render", "num_gaussians", "save", "load"):
-        if not callable(getattr(cls, attr, None)):
-            raise TypeError(f"method {name!r} ({cls!r}) does not implement Method.{attr}")
+    missing = [attr for attr in METHOD_FUNCTIONS if not callable(getattr(cls, attr, None))]
+    if missing:
+        raise TypeError(f"method {name!r} ({cls!r}) does not implement "
+                        f"{', '.join('Method.' + m for m in missing)} (README, 'Adding a method')")
     return cls
 
 
@@ -121,24 +122,31 @@ def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str,
     return merge_config(config, spec.fixed)
 
 
-def _takes_device(cls: type) -> bool:
+def _takes(cls: type, keyword: str) -> bool:
     try:
         params = inspect.signature(cls).parameters.values()
     except (TypeError, ValueError):     # no introspectable signature: let the call decide
         return True
-    return any(p.name == "device" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+    return any(p.name == keyword or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
 def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None, *,
-                  device: torch.device | str) -> Method:
+                  device: torch.device | str, run: RunSettings | None = None) -> Method:
     """Check the scene against the method's needs, then set the method up on ``device`` (a
-    ``torch.device`` or a setting of ``smgs.device.resolve_device``: "auto", "cpu", "cuda:1")."""
+    ``torch.device`` or a setting of ``smgs.device.resolve_device``: "auto", "cpu", "cuda:1") for
+    the protocol's ``run`` (None outside a protocol run)."""
     dev = resolve_device(device)
     cls = method_class(name)
-    if not _takes_device(cls):
-        raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) takes no `device` argument; "
-                        "a method's constructor is __init__(scene, config, *, name, device) and creates "
-                        "its tensors on that device (README, 'Adding a method')")
+    for keyword, why in (("device", "creates its tensors on that device"),
+                         ("run", "reads the protocol's steps, seed and budget from it")):
+        if not _takes(cls, keyword):
+            raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) takes no `{keyword}` "
+                            "argument; a method's constructor is __init__(scene, config, *, name, device, run) "
+                            f"and {why} (README, 'Adding a method')")
     needs: SceneNeeds = getattr(cls, "needs", SceneNeeds())
     needs.check(scene, name)
-    return cls(scene, resolve_config(name, config), name=name, device=dev)
+    method = cls(scene, resolve_config(name, config), name=name, device=dev, run=run)
+    if getattr(method, "name", None) != name:
+        raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) must set `self.name` to the "
+                        f"name it was created under ({name!r}), not {getattr(method, 'name', None)!r}")
+    return method

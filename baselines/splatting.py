@@ -12,7 +12,8 @@ from typing import Any, ClassVar
 import torch
 
 import smgs
-from baselines.method import SceneNeeds
+from baselines.method import RunSettings, SceneNeeds
+from baselines.trainer_settings import train_config
 from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.device import resolve_device
@@ -36,9 +37,14 @@ class GaussianSplatting:
     needs: ClassVar[SceneNeeds] = SceneNeeds(optional=frozenset({"sfm_points", "view_dependence", "background"}))
 
     def __init__(self, scene: Scene, config: dict[str, Any] | TrainConfig | None = None, *,
-                 name: str | None = None, device: torch.device | str,
+                 name: str | None = None, device: torch.device | str, run: RunSettings | None = None,
                  gaussians: Gaussians | None = None) -> None:
-        cfg = config if isinstance(config, TrainConfig) else from_dict(TrainConfig, config or {})
+        if isinstance(config, TrainConfig):
+            if run is not None:
+                raise ValueError("a TrainConfig is complete: give the run's settings in it, not as `run`")
+            cfg = config
+        else:
+            cfg = from_dict(TrainConfig, train_config(config or {}, run) if run else config or {})
         self.name = name or cfg.mode
         self.notes = self.needs.check(scene, self.name)
         self.trainer = Trainer(scene, cfg, gaussians, device=device)
@@ -57,10 +63,12 @@ class GaussianSplatting:
 
     @classmethod
     def from_splats(cls, scene: Scene, splats: PlySplats, config: dict[str, Any] | None = None,
-                    where: str | Path = "<splats>", *, device: torch.device | str) -> "GaussianSplatting":
+                    where: str | Path = "<splats>", *, device: torch.device | str,
+                    run: RunSettings | None = None) -> "GaussianSplatting":
         from baselines.registry import merge_config
 
-        cfg = from_dict(TrainConfig, merge_config(config or {}, train_overrides(splats, where)))
+        config = train_config(config or {}, run) if run else config or {}
+        cfg = from_dict(TrainConfig, merge_config(config, train_overrides(splats, where)))
         g = gaussians_from_splats(splats, cfg.gaussians, splats_extent(splats, scene.extent, where),
                                   device=resolve_device(device))
         return cls(scene, cfg, name=cfg.mode, device=device, gaussians=g)
@@ -94,6 +102,14 @@ class GaussianSplatting:
         if self.trainer.use_softmax:
             out["beta"], out["gamma"] = g.beta, g.gamma_rel
         return out
+
+    def prepare(self) -> str:
+        """Build or load the renderer, projection and loss kernels this run uses; returns the
+        renderer backend."""
+        from smgs.train.kernels import prepare_kernels
+
+        backend = prepare_kernels(self.config.backend, self.device, torch.float32, self.config.t_min)
+        return f"renderer backend {backend}"
 
     def describe(self) -> dict[str, Any]:
         return {"method": self.name, "config": to_dict(self.config), "hparams": self.config.optim.name,

@@ -32,12 +32,12 @@ def make_method(cfg: dict, scene, result: RunResult, device: torch.device):
     (``protocols.evaluate_ply``), the model of that file with zero training steps; ``result.source``
     then records where it came from."""
     from baselines.registry import create_method
-    from protocols.method_config import method_config
+    from protocols.run_settings import method_settings, run_settings
 
     name = cfg["method"]["name"]
     src = cfg.get("ply")
     if not src:
-        return create_method(name, scene, method_config(cfg), device=device)
+        return create_method(name, scene, method_settings(cfg), device=device, run=run_settings(cfg))
     from baselines.splatting import GaussianSplatting
     from smgs.io.ply import read_ply
 
@@ -50,7 +50,8 @@ def make_method(cfg: dict, scene, result: RunResult, device: torch.device):
     if splats.mode != name:
         raise ValueError(f"{path} holds a {splats.mode} model (extras: {sorted(splats.extras) or 'none'}), "
                          f"the run is for method {name!r}")
-    method = GaussianSplatting.from_splats(scene, splats, method_config(cfg), where=path, device=device)
+    method = GaussianSplatting.from_splats(scene, splats, method_settings(cfg), where=path, device=device,
+                                          run=run_settings(cfg))
     result.source = {"kind": "pretrained", "trained_here": False, "ply": str(path.resolve()), "sha256": digest,
                      "format": splats.meta.get("format"), "sh_degree": splats.sh_degree,
                      "num_gaussians": len(splats), "written_by": "smgs" if "version" in splats.meta else "another tool",

@@ -19,9 +19,9 @@ from protocols.datasets import load_scene_for
 from protocols.eval_config import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
-from protocols.method_config import method_config
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
+from protocols.run_settings import run_settings
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
 from smgs.io.atomic import atomic_write_bytes, atomic_write_text
@@ -85,15 +85,11 @@ def _load_checkpoint(run_dir: Path, method, config_hash: str, log: logging.Logge
     return progress
 
 
-def _prepare_kernels(mc: dict, device: torch.device, log: logging.Logger) -> float:
-    from smgs.raster import constants as K
-    from smgs.train.kernels import prepare_kernels
-
+def _prepare_kernels(method, log: logging.Logger) -> float:
     t0 = time.perf_counter()
-    backend = prepare_kernels(mc.get("backend", "auto"), device, torch.float32, float(mc.get("t_min", K.T_MIN)))
+    note = method.prepare()
     seconds = time.perf_counter() - t0
-    log.info("compiled kernels ready in %.1f s (renderer backend %s; not counted as training time)",
-             seconds, backend)
+    log.info("compiled kernels ready in %.1f s (%s; not counted as training time)", seconds, note or "none to build")
     return seconds
 
 
@@ -134,8 +130,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     test_rgb = [v.rgb.to(device) for v in scene.test]
     desc = method.describe()
     result.hparams = str(desc.get("hparams", ""))
-    steps = int(desc["config"]["steps"]) if "config" in desc and "steps" in desc["config"] else \
-        int(method_config(cfg)["steps"])
+    steps = 0 if result.source else run_settings(cfg).steps   # a model read from a PLY is scored as it is
     ev = EvalConfig.of(cfg)
     plan = list(desc.get("plan", []))
     if not ev.consistency:
@@ -147,7 +142,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
 
     # Compiled kernels are built (or loaded) before the train clock starts: a build is never a
     # method's training time; its seconds are recorded apart.
-    result.build_seconds = _prepare_kernels(desc.get("config") or method_config(cfg), device, log)
+    result.build_seconds = _prepare_kernels(method, log)
 
     clock = TrainClock(device)
     progress = _load_checkpoint(run_dir, method, result.config_hash, log) or \
@@ -235,9 +230,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     mode = desc.get("config", {}).get("mode", name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
         diag["frac_within_kmax"] = float(np.mean(within))
-    params = getattr(method, "parameter_values", None)
-    if callable(params):
-        diag["params"] = {k: _quantiles(v) for k, v in params().items()}
+    diag["params"] = {k: _quantiles(v) for k, v in method.parameter_values().items()}
     result.diagnostics = diag
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
@@ -275,7 +268,7 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig) -> dict:
         out = method.render(cam)
         return out.rgb, out.depth
 
-    row = consistency_row(render, traj, scene=scene.name, method=method.name if hasattr(method, "name") else "",
+    row = consistency_row(render, traj, scene=scene.name, method=method.name,
                           test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow)
     out = row.to_json()
     pairs = out.get("scores", {}).get(str(row.step), {}).get("per_pair", [])

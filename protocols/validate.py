@@ -76,14 +76,15 @@ def _method_problems(cfg: dict) -> list[str]:
     budget names), for the methods trained by ``smgs.train``."""
     from baselines.registry import method_class, resolve_config
     from baselines.splatting import GaussianSplatting
-    from protocols.method_config import method_config
+    from baselines.trainer_settings import train_config
+    from protocols.run_settings import method_settings, run_settings
     from smgs.train.config import TrainConfig, from_dict
 
     name = cfg["method"]["name"]
     if not issubclass(method_class(name), GaussianSplatting):
         return []  # another method checks its own config when it is set up
     try:
-        from_dict(TrainConfig, resolve_config(name, method_config(cfg)))
+        from_dict(TrainConfig, train_config(resolve_config(name, method_settings(cfg)), run_settings(cfg)))
     except (ValueError, TypeError, KeyError) as e:
         return [f"method {name}: {e} (method.train, dataset.train and budget settings)"]
     return []

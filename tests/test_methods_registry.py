@@ -19,8 +19,8 @@ PLUGIN = textwrap.dedent('''
         """A toy method: one trainable colour for the whole image."""
         needs = SceneNeeds()
 
-        def __init__(self, scene, config=None, *, name=None, device):
-            self.scene, self.config, self.device = scene, dict(config or {}), device
+        def __init__(self, scene, config=None, *, name=None, device, run=None):
+            self.scene, self.config, self.device, self.name, self.run = scene, dict(config or {}), device, name, run
             self.colour = torch.zeros(3, device=device, requires_grad=True)
             self.opt = torch.optim.Adam([self.colour], lr=float(self.config.get("lr", 0.1)))
 
@@ -44,8 +44,17 @@ PLUGIN = textwrap.dedent('''
         def load(self, path):
             pass
 
+        def prepare(self):
+            return ""
+
+        def parameter_values(self):
+            return {"colour": self.colour.detach()}
+
         def describe(self):
-            return {"method": "toy", "config": self.config, "hparams": "toy", "step": 0, "plan": []}
+            r = self.run
+            plan = [] if r is None else [f"asked: {r.steps} steps, seed {r.seed}, budget {r.budget} "
+                                         f"({r.preset}), cap {r.cap}, schedule {r.schedule_steps}"]
+            return {"method": self.name, "config": self.config, "hparams": "toy", "step": 0, "plan": plan}
 ''')
 
 
@@ -122,6 +131,48 @@ def test_entry_point_plugin_is_listed_lazily_and_created(plugin):
     assert get_spec(plugin).source.startswith("plugin smgs-toy-plugin")
 
 
+def test_a_plugin_run_by_the_protocol_gets_neutral_run_settings(plugin, tmp_path):
+    """Through ``protocols.run`` a plugin receives its own ``method.train`` config and the
+    protocol's steps, seed, budget and cap as ``RunSettings``, never the built-in trainer's keys."""
+    import json
+
+    from protocols.run import run_experiment
+
+    s = run_experiment(["+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]", "grid.scenes=[circle4]",
+                        f"grid.methods=[{plugin}]", "dataset.size=16", "dataset.steps=6", "report=false",
+                        "eval.fps_repeats=1", "eval.flip=false", f"out_dir={tmp_path}"])
+    assert [x["status"] for x in s] == ["ok"], s
+    res = json.loads((tmp_path / f"patterns/circle4/{plugin}/cap4/seed0/results.json").read_text())
+    assert res["steps"] == 6 and res["hparams"] == "toy"
+    assert "asked: 6 steps, seed 0, budget cap4 (cap), cap 4, schedule None" in res["diagnostics"]["plan"]
+    assert set(res["diagnostics"]["params"]) == {"colour"}
+
+
+def test_a_method_missing_part_of_the_contract_is_refused_naming_it():
+    class NoRun:
+        needs = SceneNeeds()
+
+        def __init__(self, scene, config=None, *, name=None, device):
+            raise AssertionError("must not be constructed")
+
+        train_step = render = num_gaussians = save = load = describe = parameter_values = prepare = \
+            lambda self, *a: None
+
+    class NoParams(NoRun):
+        parameter_values = None
+
+    register(MethodSpec("no_run", NoRun))
+    register(MethodSpec("no_params", NoParams))
+    try:
+        with pytest.raises(TypeError, match=r"'no_run'.*takes no `run` argument.*Adding a method"):
+            create_method("no_run", pattern_scene("circle4", 8), {}, device="cpu")
+        with pytest.raises(TypeError, match=r"'no_params'.*does not implement Method\.parameter_values"):
+            create_method("no_params", pattern_scene("circle4", 8), {}, device="cpu")
+    finally:
+        unregister("no_run")
+        unregister("no_params")
+
+
 def test_a_method_without_a_device_argument_is_refused_by_name():
     class OldStyle:
         needs = SceneNeeds()
@@ -129,7 +180,8 @@ def test_a_method_without_a_device_argument_is_refused_by_name():
         def __init__(self, scene, config=None, *, name=None):
             raise AssertionError("must not be constructed")
 
-        train_step = render = num_gaussians = save = load = describe = lambda self, *a: None
+        train_step = render = num_gaussians = save = load = describe = parameter_values = prepare = \
+            lambda self, *a: None
 
     register(MethodSpec("old_style", OldStyle))
     try:

@@ -2,15 +2,17 @@
 
 from hydra import compose, initialize_config_dir
 
+from baselines.trainer_settings import train_config
 from protocols.run import CONFIG_DIR, plan
-from protocols.train_loop import method_config
+from protocols.run_settings import method_settings, run_settings
 
 
 def cell_train_config(*overrides: str) -> dict:
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(config_name="config", overrides=list(overrides))
         _, payloads = plan(cfg, list(overrides))
-    return method_config(payloads[0]["config"])
+    cell = payloads[0]["config"]
+    return train_config(method_settings(cell), run_settings(cell))
 
 
 def test_cpu_preset_scales_the_schedule_and_never_resets_at_the_end():

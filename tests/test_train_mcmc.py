@@ -241,14 +241,16 @@ def test_mcmc_budget_yaml_reaches_the_trainer_with_its_schedule_scaled():
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from protocols.train_loop import method_config
+    from baselines.trainer_settings import train_config
+    from protocols.run_settings import method_settings, run_settings
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "configs"
     with initialize_config_dir(config_dir=str(root), version_base=None):
         cfg = compose(config_name="config", overrides=["budget=mcmc_2593000", "method=softmax_gs",
                                                         "dataset=procedural", "protocol=cpu"])
-    mc = method_config(OmegaConf.to_container(cfg, resolve=True))
+    cell = OmegaConf.to_container(cfg, resolve=True)
+    mc = train_config(method_settings(cell), run_settings(cell))
     d = from_dict(TrainConfig, mc).densify
     assert d.strategy == "mcmc" and d.cap == 2_593_000 and d.reset_every is None
     assert (d.refine_start, d.refine_stop, d.refine_every) == (50, 2500, 10)   # 500/25000/100 × 3000/30000

@@ -1,0 +1,29 @@
+"""From a cell's config to what a method is created with: its own settings (``method_settings``)
+and the protocol's neutral ``RunSettings`` (steps, seed, budget, cap, schedule length, backend),
+which each method maps onto its own keys."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from baselines.method import RunSettings
+from baselines.registry import merge_config
+
+
+def method_settings(cfg: dict) -> dict[str, Any]:
+    """The method's ``train`` settings with the dataset's overrides for its methods (e.g. the
+    2D-pattern set-up) merged on top."""
+    return merge_config(cfg["method"].get("train") or {}, cfg["dataset"].get("train") or {})
+
+
+def run_settings(cfg: dict) -> RunSettings:
+    """The cell's steps (a dataset with its own step count keeps its own schedule), seed, budget
+    and renderer backend."""
+    budget = cfg["budget"]
+    own_steps = cfg["dataset"].get("steps")
+    return RunSettings(steps=int(own_steps or cfg["protocol"]["steps"]), seed=int(cfg["seed"]),
+                       budget=str(budget["name"]), preset=str(budget.get("preset", budget["name"])),
+                       grad_threshold=budget.get("densify_grad_threshold"),
+                       cap=None if budget.get("cap") is None else int(budget["cap"]),
+                       schedule_steps=None if own_steps else cfg["protocol"].get("schedule_steps"),
+                       backend=cfg.get("backend", "auto"))
