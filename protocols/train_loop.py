@@ -120,32 +120,72 @@ def _quantiles(t: torch.Tensor) -> dict[str, float]:
 
 
 def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging.Logger) -> RunResult:
-    """``cfg["device"]`` is the resolved device (``protocols.cell.with_device``)."""
+    """One run: train (with checkpoints and intermediate evaluations), then the final metrics,
+    speed, diagnostics and view consistency. ``cfg["device"]`` is the resolved device
+    (``protocols.cell.with_device``)."""
     device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
-    name = cfg["method"]["name"]
     method = make_method(cfg, scene, result, device)   # trained here, or read from a PLY (protocols.ply)
     log.info("device: %s", device_name(device))
+    ev = EvalConfig.of(cfg)
     test_rgb = [v.rgb.to(device) for v in scene.test]
     desc = method.describe()
     result.hparams = str(desc.get("hparams", ""))
     steps = 0 if result.source else run_settings(cfg).steps   # a model read from a PLY is scored as it is
-    ev = EvalConfig.of(cfg)
-    plan = list(desc.get("plan", []))
-    if not ev.consistency:
-        plan.append("view consistency: off (eval.consistency=false)")
-    elif not scene.trajectory and len(scene.test) < 2:
-        plan.append("view consistency: off (no video trajectory and fewer than 2 test views)")
+    plan = run_plan(desc, ev, scene)
     for line in plan:
         log.info("plan: %s", line)
 
     # Compiled kernels are built (or loaded) before the train clock starts: a build is never a
     # method's training time; its seconds are recorded apart.
     result.build_seconds = _prepare_kernels(method, log)
-
     clock = TrainClock(device)
-    progress = _load_checkpoint(run_dir, method, result.config_hash, log) or \
+    with track_peak_memory(device) as peak:
+        result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log)
+    result.steps = steps
+    result.train_seconds = clock.seconds
+    result.num_gaussians = method.num_gaussians()
+
+    within = final_metrics(method, scene, test_rgb, ev, run_dir, device, result)
+    with fps_slot(cfg) as fps_conditions:
+        fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
+                                 warmup=ev.fps_warmup, repeats=ev.fps_repeats, device=device)
+    result.render_fps = fps.fps
+    result.render_device = fps.device
+    result.peak_memory_mb = peak.mib
+    from smgs.raster import cpu_build, resolve_backend
+
+    result.versions = versions(resolve_backend(cfg.get("backend", "auto"), device, torch.float32), device_name(device))
+    result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
+    result.diagnostics = diagnostics(method, desc, plan, within, ev, clock, peak.kind, fps_conditions)
+    if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
+        with clock.exclude("consistency"):
+            result.consistency = consistency(method, scene, run_dir, ev)
+    result.status = "ok"
+    # the final state is kept as the run's checkpoint (rendering later needs no retraining)
+    _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
+                                       "curve": [c.__dict__ for c in result.curve], "config_hash": result.config_hash})
+    after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
+    return result
+
+
+def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
+    """What the run uses and leaves out: the method's plan, then the harness's own stages."""
+    plan = list(desc.get("plan", []))
+    if not ev.consistency:
+        plan.append("view consistency: off (eval.consistency=false)")
+    elif not scene.trajectory and len(scene.test) < 2:
+        plan.append("view consistency: off (no video trajectory and fewer than 2 test views)")
+    return plan
+
+
+def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
+          cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger) -> list[CurvePoint]:
+    """The training loop, resumed from this config's checkpoint if there is one: the test-view
+    PSNR at ``ev.fractions`` of the steps (the error-against-time curve, returned) and a
+    checkpoint every ``checkpoint_every`` steps, both outside the train clock."""
+    progress = _load_checkpoint(run_dir, method, config_hash, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     start = int(progress["step"])
     clock.seconds = float(progress["train_seconds"])
@@ -154,52 +194,51 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
         log.info("resumed from step %d (%.1f s of training)", start, clock.seconds)
     checks = set(eval_steps(steps, list(ev.fractions)))
     every = int(cfg.get("checkpoint_every") or 0)
-    bar = progress_bar(steps, f"{cfg['scene']}/{name}", initial=start, position=1, leave=False)
-    with track_peak_memory(device) as peak:
-        for step in range(start, steps):
-            with clock.training():
-                logs = method.train_step(step)
-            done = step + 1
-            if done in checks:
-                with clock.exclude("eval"):
-                    last_psnr = quick_psnr(method, scene.test, test_rgb, ev.quantize)
-                curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
-                log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
-                         method.num_gaussians())
-            if every and done % every == 0 and done < steps:
-                with clock.exclude("checkpoint"):
-                    _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
-                                                       "curve": [c.__dict__ for c in curve],
-                                                       "config_hash": result.config_hash})
-            bar.update(1)
-            if done % 10 == 0 or done == steps:
-                # psnr: this step's training view; test: the last intermediate evaluation
-                post = {"loss": f"{logs.get('loss', float('nan')):.4f}"}
-                if "psnr" in logs:
-                    post["psnr"] = f"{logs['psnr']:.2f}"
-                if curve:
-                    post["test"] = f"{curve[-1].psnr:.2f}"
-                bar.set_postfix(post, gs=method.num_gaussians())
+    bar = progress_bar(steps, f"{cfg['scene']}/{cfg['method']['name']}", initial=start, position=1, leave=False)
+    for step in range(start, steps):
+        with clock.training():
+            logs = method.train_step(step)
+        done = step + 1
+        if done in checks:
+            with clock.exclude("eval"):
+                last_psnr = quick_psnr(method, scene.test, test_rgb, ev.quantize)
+            curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
+            log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
+                     method.num_gaussians())
+        if every and done % every == 0 and done < steps:
+            with clock.exclude("checkpoint"):
+                _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
+                                                   "curve": [c.__dict__ for c in curve],
+                                                   "config_hash": config_hash})
+        bar.update(1)
+        if done % 10 == 0 or done == steps:
+            # psnr: this step's training view; test: the last intermediate evaluation
+            post = {"loss": f"{logs.get('loss', float('nan')):.4f}"}
+            if "psnr" in logs:
+                post["psnr"] = f"{logs['psnr']:.2f}"
+            if curve:
+                post["test"] = f"{curve[-1].psnr:.2f}"
+            bar.set_postfix(post, gs=method.num_gaussians())
     bar.close()
-    result.steps = steps
-    result.train_seconds = clock.seconds
-    result.curve = curve
-    result.num_gaussians = method.num_gaussians()
+    return curve
 
-    # final evaluation on the test views, on 8-bit renders
-    renders, gts, names, within = [], [], [], []
+
+def final_metrics(method, scene, test_rgb: list[torch.Tensor], ev: EvalConfig, run_dir: Path,
+                  device: torch.device, result: RunResult) -> list[float]:
+    """The test views' PSNR, SSIM, LPIPS and FLIP (on 8-bit renders unless ``ev.quantize`` is
+    off) into ``result``, the renders saved; returns each view's fraction of pixels within k_max."""
+    renders, names, within = [], [], []
     with torch.no_grad():
-        for v, gt in zip(scene.test, test_rgb):
+        for v in scene.test:
             out = method.render(v.camera)
             renders.append(out.rgb.clamp(0, 1))
-            gts.append(gt)
             names.append(v.name)
             within.append(out.stats.frac_within_kmax)
     if ev.save_renders:
         for n, img in zip(names, renders):
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
-        save_view_images(run_dir / "renders", names, renders, gts, ev.viewer_views)
-    m = evaluate_images(renders, gts, names, lpips_net=ev.lpips_net,
+        save_view_images(run_dir / "renders", names, renders, test_rgb, ev.viewer_views)
+    m = evaluate_images(renders, test_rgb, names, lpips_net=ev.lpips_net,
                         lpips_weights=ev.lpips_weights, lpips_input=ev.lpips_input, flip=ev.flip,
                         quantize=ev.quantize, device=device)
     means = m.means()
@@ -212,35 +251,21 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
             result.metrics[key] = float(mean)
             result.per_view[key] = values
     result.lpips_net = m.lpips_name
-    with fps_slot(cfg) as fps_conditions:
-        fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
-                                 warmup=ev.fps_warmup, repeats=ev.fps_repeats,
-                                 device=device)
-    result.render_fps = fps.fps
-    result.render_device = fps.device
-    result.peak_memory_mb = peak.mib
-    backend = cfg.get("backend", "auto")
-    from smgs.raster import cpu_build, resolve_backend
+    return within
 
-    result.versions = versions(resolve_backend(backend, device, torch.float32), device_name(device))
-    result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
-    diag: dict[str, Any] = {"peak_memory_kind": peak.kind, "plan": plan, "left_out": left_out_of(plan),
+
+def diagnostics(method, desc: dict, plan: list[str], within: list[float], ev: EvalConfig, clock: TrainClock,
+                peak_kind: str, fps_conditions: dict) -> dict[str, Any]:
+    """What the report explains a run's numbers with: the plan and what it left out, the k_max
+    coverage of a softmax mode, the learned parameters' quantiles, where time and memory went."""
+    diag: dict[str, Any] = {"peak_memory_kind": peak_kind, "plan": plan, "left_out": left_out_of(plan),
                             "metrics_on_8bit": ev.quantize,
                             "eval_seconds": clock.excluded.get("eval", 0.0), "fps_conditions": fps_conditions}
-    mode = desc.get("config", {}).get("mode", name)
+    mode = desc.get("config", {}).get("mode", method.name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
         diag["frac_within_kmax"] = float(np.mean(within))
     diag["params"] = {k: _quantiles(v) for k, v in method.parameter_values().items()}
-    result.diagnostics = diag
-    if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
-        with clock.exclude("consistency"):
-            result.consistency = consistency(method, scene, run_dir, ev)
-    result.status = "ok"
-    # the final state is kept as the run's checkpoint (rendering later needs no retraining)
-    _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in curve], "config_hash": result.config_hash})
-    after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
-    return result
+    return diag
 
 
 def consistency(method, scene, run_dir: Path, ev: EvalConfig) -> dict:

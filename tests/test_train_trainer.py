@@ -37,3 +37,16 @@ def test_statistics_skipped_only_while_the_cap_is_full():
     assert tr.strategy.grad2d.numel() == 4 and tr.strategy.count.sum() > 0
     tr = _trainer(cap=4, densify={"budget": "cap", "cap": 4, "reset_every": 3000})
     assert tr.strategy.wants_stats(4)               # size pruning reads the screen radii
+
+
+def test_stage_timings_only_when_profiling_and_the_step_is_the_same():
+    """``profile`` adds each stage's time (bench/train.py) and changes nothing the step computes."""
+    quiet, timed = _trainer("softmax_gs"), _trainer("softmax_gs")
+    timed.profile = True
+    for s in range(3):
+        a, b = quiet.train_step(s), timed.train_step(s)
+        assert a == b
+    assert set(quiet.timings.values()) == {0.0}
+    assert set(timed.timings) == {"render", "loss", "backward", "optim", "strategy"}
+    assert all(v > 0 for v in timed.timings.values()), timed.timings
+    torch.testing.assert_close(quiet.gaussians.means, timed.gaussians.means, rtol=0, atol=0)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import threading
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -164,6 +165,17 @@ class _Undistorter:
         return out, newK.copy()
 
 
+@dataclass(frozen=True)
+class _Entry:
+    """One frame as the files describe it: its split, merged intrinsics, frame dict, image file."""
+
+    split: str
+    cam: dict
+    frame: dict
+    path: Path
+    where: str
+
+
 def load_transforms(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
                     factor: float | None = None, max_width: int | None = None, resample: str | None = None,
                     test_every: int | None = 8, undistort: bool = True,
@@ -183,76 +195,21 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
         raise ValueError("images='auto' is for COLMAP scenes; name the folder (e.g. 'images_4')")
     path = Path(path)
     files, base = _find_transforms(path)
-
-    frames: list[tuple[str, dict, dict]] = []  # (split, global, frame)
-    for split, d in files.items():
-        glob = {k: d[k] for k in _INTRINSIC_KEYS if k in d}
-        frames += [(split, glob, f) for f in d["frames"]]
     root = next(iter(files.values()))
-
-    entries = []
-    for i, (split, glob, fr) in enumerate(frames):
-        where = f"{base} frame {i} ({fr.get('file_path')!r})"
-        if "file_path" not in fr or "transform_matrix" not in fr:
-            raise SceneFormatError(f"{where}: a frame needs file_path and transform_matrix; expected {LAYOUT}")
-        cam = {**glob, **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}
-        p = _image_path(base, fr["file_path"], images)
-        entries.append((split, cam, fr, p, where))
-
-    distorted = any(float(c.get(k, 0.0)) != 0.0 for _, c, _, _, _ in entries for k in DIST_KEYS)
+    entries = _entries(files, base, images)
+    distorted = any(float(e.cam.get(k, 0.0)) != 0.0 for e in entries for k in DIST_KEYS)
     if distorted and not undistort:
         raise SceneFormatError(f"{base}: the cameras have non-zero distortion coefficients "
-                               f"({', '.join(k for k in DIST_KEYS if entries[0][1].get(k))}); smgs renders "
+                               f"({', '.join(k for k in DIST_KEYS if entries[0].cam.get(k))}); smgs renders "
                                "pinhole cameras only. Load with undistort=True, or undistort the images first")
-
-    undistorter = _Undistorter()
-    alpha_seen = threading.Event()
     bg = np.asarray(background if background is not None else (1.0, 1.0, 1.0), dtype=np.float64)
-
-    def load_one(i: int):
-        split, cam, fr, p, where = entries[i]
-        img = read_image(p, keep_alpha=True)
-        src = (img.shape[1], img.shape[0])
-        # The size the intrinsics refer to: given in the file, else the file at its own file_path.
-        if "w" in cam and "h" in cam:
-            ref_size = src
-        else:
-            ref_size = src if images is None else image_size(_image_path(base, fr["file_path"], None))
-        K, ksize, dist = _intrinsics(cam, ref_size, where)
-        check_aspect(p, src, ksize)
-        K = scale_intrinsics(K, ksize, src)
-        if img.shape[2] == 4:
-            alpha_seen.set()
-            a = img[..., 3:].astype(np.float64) / 255.0
-            img = np.round(img[..., :3] * a + 255.0 * bg * (1 - a)).astype(np.uint8)
-        if np.any(dist != 0):
-            img, K = undistorter(img, K, dist)
-        out = rule.target_size(*src)
-        img = resize_image(img, out, rule.resample)
-        K = scale_intrinsics(K, src, out)
-        return img, K, _pose_opencv(fr["transform_matrix"], where), src, ksize
-
-    loaded = parallel_map(load_one, range(len(entries)), workers)
+    loader = _FrameLoader(base, images, rule, bg)
+    loaded = parallel_map(lambda i: loader(entries[i]), range(len(entries)), workers)
     views = []
-    for (split, cam, fr, p, where), (img, K, vm, _, _) in zip(entries, loaded):
+    for e, (img, K, vm, _, _) in zip(entries, loaded):
         c = Camera(torch.from_numpy(K).float(), torch.from_numpy(vm).float(), img.shape[1], img.shape[0])
-        views.append(View(c, torch.from_numpy(img), _frame_name(fr["file_path"])))
-
-    if "all" not in files:
-        tr = [i for i, e in enumerate(entries) if e[0] == "train"]
-        te = [i for i, e in enumerate(entries) if e[0] == "test"]
-        split_desc = "explicit: transforms_train.json / transforms_test.json"
-    elif "train_filenames" in root and "test_filenames" in root:
-        trn = {_frame_name(n) for n in root["train_filenames"]}
-        ten = {_frame_name(n) for n in root["test_filenames"]}
-        tr = [i for i, v in enumerate(views) if v.name in trn]
-        te = [i for i, v in enumerate(views) if v.name in ten]
-        split_desc = "explicit: train_filenames / test_filenames in transforms.json"
-    else:
-        tr, te = split_every([v.name for v in views], test_every)
-        split_desc = split_description(test_every)
-    tr = sorted(tr, key=lambda i: views[i].name)
-    te = sorted(te, key=lambda i: views[i].name)
+        views.append(View(c, torch.from_numpy(img), _frame_name(e.frame["file_path"])))
+    tr, te, split_desc = _split(files, root, entries, views, test_every)
     train, test = [views[i] for i in tr], [views[i] for i in te]
     if not train:
         raise SceneFormatError(f"{base}: no training frames after the split ({split_desc})")
@@ -261,7 +218,8 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
     out0 = (views[0].camera.width, views[0].camera.height)
     folder = images if images is not None else (PurePosixPath(views[0].name).parts[0]
                                                 if len(PurePosixPath(views[0].name).parts) > 1 else ".")
-    dist0 = entries[0][1]
+    dist0 = entries[0].cam
+    alpha_seen = loader.alpha_seen.is_set()
     info = {
         "loader": "transforms",
         "dataset": "transforms",
@@ -273,7 +231,7 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
         "resample_filter": rule.resample,
         "image_size": list(out0),
         "downscale_factor": round(loaded[0][4][0] / out0[0], 6),
-        "resampling": describe_resampling(folder, entries[0][3].suffix, src0, out0, rule),
+        "resampling": describe_resampling(folder, entries[0].path.suffix, src0, out0, rule),
         "distortion": {k: float(dist0[k]) for k in DIST_KEYS if float(dist0.get(k, 0.0)) != 0.0} or None,
         "undistortion": ("OpenCV getOptimalNewCameraMatrix(alpha=0, same size) + remap INTER_CUBIC, "
                          "before resizing; intrinsics replaced by the new camera") if distorted else "none (no distortion)",
@@ -286,11 +244,79 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
         "n_train": len(train),
         "n_test": len(test),
         "n_points": 0,
-        "alpha_composited_on": bg.tolist() if alpha_seen.is_set() else None,
+        "alpha_composited_on": bg.tolist() if alpha_seen else None,
     }
     if "ply_file_path" in root:
         info["ply_file_path_not_loaded"] = root["ply_file_path"]
     info.update(meta or {})
     return Scene(name=info["scene"], train=train, test=test, extent=camera_extent([v.camera for v in train]),
                  points=None, point_colors=None,
-                 background=torch.tensor(bg, dtype=torch.float32) if alpha_seen.is_set() else None, meta=info)
+                 background=torch.tensor(bg, dtype=torch.float32) if alpha_seen else None, meta=info)
+
+
+def _entries(files: dict[str, dict], base: Path, images: str | None) -> list[_Entry]:
+    """Every frame of the files in order, its intrinsics the file's global ones under its own."""
+    frames: list[tuple[str, dict, dict]] = []  # (split, global, frame)
+    for split, d in files.items():
+        glob = {k: d[k] for k in _INTRINSIC_KEYS if k in d}
+        frames += [(split, glob, f) for f in d["frames"]]
+    entries = []
+    for i, (split, glob, fr) in enumerate(frames):
+        where = f"{base} frame {i} ({fr.get('file_path')!r})"
+        if "file_path" not in fr or "transform_matrix" not in fr:
+            raise SceneFormatError(f"{where}: a frame needs file_path and transform_matrix; expected {LAYOUT}")
+        cam = {**glob, **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}
+        entries.append(_Entry(split, cam, fr, _image_path(base, fr["file_path"], images), where))
+    return entries
+
+
+class _FrameLoader:
+    """Reads one frame (from worker threads): alpha composited on ``bg``, undistorted, resized by
+    the rule, with its intrinsics following each step; notes whether any image had alpha."""
+
+    def __init__(self, base: Path, images: str | None, rule: ResolutionRule, bg: np.ndarray) -> None:
+        self.base, self.images, self.rule, self.bg = base, images, rule, bg
+        self.undistorter = _Undistorter()
+        self.alpha_seen = threading.Event()
+
+    def __call__(self, e: _Entry):
+        img = read_image(e.path, keep_alpha=True)
+        src = (img.shape[1], img.shape[0])
+        # The size the intrinsics refer to: given in the file, else the file at its own file_path.
+        if "w" in e.cam and "h" in e.cam:
+            ref_size = src
+        else:
+            ref_size = src if self.images is None else image_size(_image_path(self.base, e.frame["file_path"], None))
+        K, ksize, dist = _intrinsics(e.cam, ref_size, e.where)
+        check_aspect(e.path, src, ksize)
+        K = scale_intrinsics(K, ksize, src)
+        if img.shape[2] == 4:
+            self.alpha_seen.set()
+            a = img[..., 3:].astype(np.float64) / 255.0
+            img = np.round(img[..., :3] * a + 255.0 * self.bg * (1 - a)).astype(np.uint8)
+        if np.any(dist != 0):
+            img, K = self.undistorter(img, K, dist)
+        out = self.rule.target_size(*src)
+        img = resize_image(img, out, self.rule.resample)
+        K = scale_intrinsics(K, src, out)
+        return img, K, _pose_opencv(e.frame["transform_matrix"], e.where), src, ksize
+
+
+def _split(files: dict[str, dict], root: dict, entries: list[_Entry], views: list[View],
+           test_every: int | None) -> tuple[list[int], list[int], str]:
+    """Train and test indices (each name-sorted) and how they were chosen: separate train/test
+    files, file lists in transforms.json, else every ``test_every``-th name-sorted image."""
+    if "all" not in files:
+        tr = [i for i, e in enumerate(entries) if e.split == "train"]
+        te = [i for i, e in enumerate(entries) if e.split == "test"]
+        split_desc = "explicit: transforms_train.json / transforms_test.json"
+    elif "train_filenames" in root and "test_filenames" in root:
+        trn = {_frame_name(n) for n in root["train_filenames"]}
+        ten = {_frame_name(n) for n in root["test_filenames"]}
+        tr = [i for i, v in enumerate(views) if v.name in trn]
+        te = [i for i, v in enumerate(views) if v.name in ten]
+        split_desc = "explicit: train_filenames / test_filenames in transforms.json"
+    else:
+        tr, te = split_every([v.name for v in views], test_every)
+        split_desc = split_description(test_every)
+    return sorted(tr, key=lambda i: views[i].name), sorted(te, key=lambda i: views[i].name), split_desc

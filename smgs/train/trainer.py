@@ -7,10 +7,11 @@ mode switch; ``baselines.splatting`` wraps it in the ``Method`` interface. The c
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
-from typing import Any
+from typing import Any, Iterator
 
 import torch
 
@@ -206,71 +207,84 @@ class Trainer:
         if step is not None and step != self.step_count:
             raise ValueError(f"train_step({step}) but {self.step_count} steps are done; "
                              "load the checkpoint of that step to resume")
-        cfg, g = self.cfg, self.gaussians
         it = self.step_count + 1
-        prof = self.profile
-        t0 = time.perf_counter()
-        lr = self.optimizer.update_lr(it)
-        vi = self._next_view()
-        view = self.scene.train[vi]
-        target = self._targets[vi]
-        bg = None
-        if cfg.random_background:
-            bg = torch.rand(3, generator=self.gen, device=self.device)
-        try:
-            out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
-        except NonFiniteInputError:
-            self.check_finite(self.step_count, "before the step")  # names the parameter group
-            raise
-        self.strategy.step_pre_backward(it, g, out)
-        t1 = time.perf_counter()
-        rgb = out.rgb
-        parts = self.photometric(rgb, target)   # (1 − λ)·L1 + λ·(1 − SSIM), with L1, SSIM and MSE
-        loss = parts.total
-        var_b = var_g = None
-        if self.reg_on and out.reg is not None:
-            var_b, var_g = ray_variance(out.reg)
-            loss = loss + cfg.loss.lambda_beta_var * var_b + cfg.loss.lambda_gamma_var * var_g
-        reg = self.strategy.regularizer(it, g)
-        if reg is not None:
-            loss = loss + reg
-        loss_v = float(loss.detach())
-        if not math.isfinite(loss_v):
-            self.check_finite(self.step_count, "before the step")
-            raise NonFiniteError("loss", self.step_count, f"loss = {loss_v}")
-        t2 = time.perf_counter()
-        if loss.requires_grad:      # no Gaussian visible in this view: nothing to learn from it
-            loss.backward()
-        t3 = time.perf_counter()
-        self.optimizer.step()
-        every = cfg.check_finite_every
-        if every and it % every == 0:
-            # A NaN reaching the loss stops the step above at once; this catches parameters that
-            # went non-finite without showing in this view, up to ``every`` − 1 steps late.
-            self.check_finite(self.step_count, "after the optimiser step" + (
-                "" if every == 1 else f" (checked every {every} steps: it appeared at step "
-                                      f"{max(self.step_count - every + 1, 0)} or later)"))
-        t4 = time.perf_counter()
-        ev = self.strategy.step_post_backward(it, g, self.optimizer, out, view.camera, lr)
-        self.optimizer.zero_grad()
-        t5 = time.perf_counter()
-        if prof:
-            for k, a, b in (("render", t0, t1), ("loss", t1, t2), ("backward", t2, t3), ("optim", t3, t4),
-                            ("strategy", t4, t5)):
-                self.timings[k] += b - a
+        with self._timed("render"):
+            lr = self.optimizer.update_lr(it)
+            view, target, out = self._forward(it)
+        with self._timed("loss"):
+            loss, loss_v, parts, var = self._loss(out, target, it)
+        with self._timed("backward"):
+            if loss.requires_grad:      # no Gaussian visible in this view: nothing to learn from it
+                loss.backward()
+        with self._timed("optim"):
+            self.optimizer.step()
+            self._check_after_step(it)
+        with self._timed("strategy"):
+            ev = self.strategy.step_post_backward(it, self.gaussians, self.optimizer, out, view.camera, lr)
+            self.optimizer.zero_grad()
         self.step_count += 1
-        mse = parts.mse
-        logs = {"loss": loss_v, "l1": parts.l1, "ssim": parts.ssim,
-                "psnr": psnr_from_mse(mse),
-                "num_gaussians": float(len(g)), "lr_means": lr}
-        if var_b is not None:
-            logs["var_beta"], logs["var_gamma"] = float(var_b.detach()), float(var_g.detach())
+        logs = {"loss": loss_v, "l1": parts.l1, "ssim": parts.ssim, "psnr": psnr_from_mse(parts.mse),
+                "num_gaussians": float(len(self.gaussians)), "lr_means": lr}
+        if var is not None:
+            logs["var_beta"], logs["var_gamma"] = float(var[0].detach()), float(var[1].detach())
         if ev is not None and ev.changed():
             logs.update(cloned=float(ev.cloned), split=float(ev.split), pruned=float(ev.pruned),
                         opacity_reset=float(ev.reset))
             if ev.relocated or ev.added:
                 logs.update(relocated=float(ev.relocated), added=float(ev.added))
         return logs
+
+    @contextlib.contextmanager
+    def _timed(self, stage: str) -> Iterator[None]:
+        """Add the block's wall time to ``timings[stage]`` when ``profile`` is on (bench/train.py)."""
+        if not self.profile:
+            yield
+            return
+        t0 = time.perf_counter()
+        yield
+        self.timings[stage] += time.perf_counter() - t0
+
+    def _forward(self, it: int) -> tuple[Any, torch.Tensor, RenderOutput]:
+        """The next training view, its target and its render (with the strategy's pre-backward
+        hook, which keeps the screen-space gradients it needs)."""
+        vi = self._next_view()
+        view, target = self.scene.train[vi], self._targets[vi]
+        bg = torch.rand(3, generator=self.gen, device=self.device) if self.cfg.random_background else None
+        try:
+            out = self.render(view.camera, with_reg=self.reg_on, sh_degree=self.sh_degree(it), background=bg)
+        except NonFiniteInputError:
+            self.check_finite(self.step_count, "before the step")  # names the parameter group
+            raise
+        self.strategy.step_pre_backward(it, self.gaussians, out)
+        return view, target, out
+
+    def _loss(self, out: RenderOutput, target: torch.Tensor, it: int) -> tuple[torch.Tensor, float, Any, Any]:
+        """(1 − λ)·L1 + λ·(1 − SSIM) (with L1, SSIM and MSE apart), the β/γ ray-variance terms and
+        the strategy's regulariser; a non-finite loss stops the step naming the parameter group."""
+        cfg = self.cfg
+        parts = self.photometric(out.rgb, target)
+        loss = parts.total
+        var = None
+        if self.reg_on and out.reg is not None:
+            var = ray_variance(out.reg)
+            loss = loss + cfg.loss.lambda_beta_var * var[0] + cfg.loss.lambda_gamma_var * var[1]
+        reg = self.strategy.regularizer(it, self.gaussians)
+        if reg is not None:
+            loss = loss + reg
+        loss_v = float(loss.detach())
+        if not math.isfinite(loss_v):
+            self.check_finite(self.step_count, "before the step")
+            raise NonFiniteError("loss", self.step_count, f"loss = {loss_v}")
+        return loss, loss_v, parts, var
+
+    def _check_after_step(self, it: int) -> None:
+        every = self.cfg.check_finite_every
+        if every and it % every == 0:
+            # A NaN reaching the loss stops the step above at once; this catches parameters that
+            # went non-finite without showing in this view, up to ``every`` − 1 steps late.
+            self.check_finite(self.step_count, "after the optimiser step" + (
+                "" if every == 1 else f" (checked every {every} steps: it appeared at step "
+                                      f"{max(self.step_count - every + 1, 0)} or later)"))
 
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
