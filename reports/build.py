@@ -1,6 +1,6 @@
-"""``python -m reports.build RUNS_DIR [--out DIR] [--no-stability]``: results tree -> report.
+"""``python -m reports.build RUNS_DIR [RUNS_DIR ...] [--out DIR] [--no-stability]``: results tree -> report.
 
-Reads every results.json below RUNS_DIR and writes, into DIR (default RUNS_DIR/report):
+Reads every results.json below the RUNS_DIRs (several: one grid run apart, merged as one) and writes, into DIR (default RUNS_DIR/report):
 ``report.md``, ``tables/<table>.csv`` (one per table, long format), ``tables/runs.csv`` (every run),
 ``plots/*.png`` and ``report.html`` (the same report as one interactive page, ``reports/html/``). Every file is written atomically (temp file + rename); files of a previous build
 that this build does not produce are removed (only those the previous build listed in its manifest).
@@ -47,14 +47,15 @@ preset, which is never the paper's protocol."""
 
 
 def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
-                 stability: list[dict] | str | None = None) -> Path:
-    """Build the report of every run below ``runs_dir``; returns the path of report.md.
+                 stability: list[dict] | str | None = None, also: list[Path | str] | tuple = ()) -> Path:
+    """Build the report of every run below ``runs_dir`` and the ``also`` directories (a grid split
+    over several runs directories is merged as one); returns the path of report.md.
 
     ``stability``: the stiff-case battery's rows (``smgs.raster.stability.stiff_battery``); None runs the
     battery here if that module is importable; a string is the reason it was not computed."""
     runs_dir = Path(runs_dir)
     out = Path(out_dir) if out_dir is not None else runs_dir / "report"
-    loaded = load_runs(runs_dir)
+    loaded = load_runs(runs_dir, *also)
     runs = [x.result for x in loaded.runs]
     paper = load_paper()
     ctx = Context.of(runs, paper)
@@ -133,7 +134,9 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = ["# smgs report", "",
-           f"Runs directory: {md_text(runs_dir.resolve())} · built {when} · {len(runs)} results ("
+           ("Runs directories: " + ", ".join(md_text(Path(d).resolve()) for d in loaded.roots)
+            if len(loaded.roots) > 1 else f"Runs directory: {md_text(runs_dir.resolve())}")
+           + f" · built {when} · {len(runs)} results ("
            + ", ".join(f"{n} {s}" for s, n in sorted(status.items())) + ")", ""]
     presets = Counter(r.preset for r in runs)
     if presets:
@@ -256,15 +259,18 @@ def _ours(out: Path, rel: str) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m reports.build", description=__doc__.splitlines()[0])
-    ap.add_argument("runs_dir", type=Path, help="directory searched recursively for results.json")
+    ap.add_argument("runs_dir", type=Path, nargs="+",
+                    help="directory searched recursively for results.json; several: one report of all "
+                         "(e.g. a grid split over machines), written below the first unless --out")
     ap.add_argument("--out", type=Path, default=None, help="output directory (default RUNS_DIR/report)")
     ap.add_argument("--no-stability", action="store_true", help="do not run the renderer's stiff-case battery")
     args = ap.parse_args(argv)
-    if not args.runs_dir.is_dir():
-        print(f"error: {args.runs_dir} is not a directory", file=sys.stderr)
-        return 2
+    for d in args.runs_dir:
+        if not d.is_dir():
+            print(f"error: {d} is not a directory", file=sys.stderr)
+            return 2
     stability = "skipped (--no-stability)" if args.no_stability else None
-    path = build_report(args.runs_dir, args.out, stability=stability)
+    path = build_report(args.runs_dir[0], args.out, stability=stability, also=args.runs_dir[1:])
     print(f"report: {path}")
     return 0
 

@@ -67,6 +67,7 @@ class LoadedRuns:
     runs: list[Run] = field(default_factory=list)
     unreadable: list[tuple[Path, str]] = field(default_factory=list)
     duplicates: list[tuple[Path, Path]] = field(default_factory=list)  # (ignored, kept)
+    roots: list[Path] = field(default_factory=list)                     # the directories read
 
 
 def identity(r: RunResult) -> tuple:
@@ -75,14 +76,15 @@ def identity(r: RunResult) -> tuple:
     return (r.method, r.dataset, r.scene, r.budget, r.preset, r.seed, pattern_cap(r) if is_pattern(r) else None)
 
 
-def load_runs(root: Path | str) -> LoadedRuns:
-    """Every results.json below ``root``. Unreadable files are listed, not fatal. Two results for
-    the same (method, dataset, scene, budget, preset, seed), e.g. two copies of an experiment,
-    keep one: an ok result over a failed one, then the newest file. (A pattern fit's cap is part of
-    its identity.)"""
-    out = LoadedRuns()
+def load_runs(root: Path | str, *more: Path | str) -> LoadedRuns:
+    """Every results.json below ``root`` and the ``more`` directories (the parts of a grid that ran
+    apart, e.g. split by pattern on two machines). Unreadable files are listed, not fatal. Two
+    results for the same (method, dataset, scene, budget, preset, seed), e.g. two copies of an
+    experiment, keep one: an ok result over a failed one, then the newest file. (A pattern fit's
+    cap is part of its identity.)"""
+    out = LoadedRuns(roots=[Path(r) for r in (root, *more)])
     kept: dict[tuple, Run] = {}
-    for p in find_results(root):
+    for p in [p for r in out.roots for p in find_results(r)]:
         try:
             run = Run(p, read_result(p))
         except (OSError, ValueError) as e:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 from typing import Iterable
 
 from protocols.results import RunResult
+from reports.ordering import ordering_section
 from reports.paper import (DATASET_SCENES, PATTERNS, GROUP_LABELS, GROUP_ORDER, PaperTables, budget_group,
                            budget_rank, dataset_label, dataset_rank, method_label, method_rank, paper_key,
                            row_label, scene_rank)
@@ -192,6 +193,13 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
                             "num_gaussians": gs.mean, "note": "; ".join(([v.reason] if v.reason else [])
                                                                         + list(v.notes))})
     sec.records = records
+    means = defaultdict(dict)
+    for (pattern, cap, m, p), rs in cells.items():
+        v = aggregate(rs, PSNR)
+        if v.ok:
+            means[(pattern, cap, p)][m] = v.mean
+    sec.subsections.append(ordering_section(dict(sorted(means.items())),
+                                            {(pt, cap): ctx.paper.t1(pt, "softmax_gs", cap) for pt, cap, _ in means}))
     sec.notes += mix_notes(pats)
     if no_cap:
         sec.notes.append(f"{len(no_cap)} pattern run(s) record no Gaussian cap and are left out: "

@@ -135,16 +135,9 @@ def test_a_cell_whose_node_lacks_the_device_fails_without_a_run_directory(tmp_pa
     assert not (tmp_path / "k").exists()
 
 
-def test_table1_and_bench_command_lines_refuse_bad_devices(tmp_path, no_gpu, capsys):
+def test_bench_command_line_refuses_a_bad_device(no_gpu, capsys):
     from bench.train import main as bench_main
-    from protocols.patterns import main as patterns_main
 
-    with pytest.raises(SystemExit):
-        patterns_main(["--counts", "4", "--seeds", "0", "--steps", "2", "--device", "cuda", "--out", str(tmp_path / "t1")])
-    assert "asks for CUDA" in capsys.readouterr().err and not (tmp_path / "t1").exists()
-    with pytest.raises(SystemExit):
-        patterns_main(["--backend", "cuda", "--device", "cpu", "--out", str(tmp_path / "t1")])
-    assert "backend=cuda renders on the CUDA only" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         bench_main(["--device", "gpu"])
     assert "unknown device 'gpu'" in capsys.readouterr().err
@@ -163,17 +156,9 @@ def test_device_cpu_reaches_results_and_the_report_names_it(tmp_path):
     assert "device: " + name in (tmp_path / "patterns/circle4/softmax_gs/cap4/seed0/log.txt").read_text()
 
 
-def test_table1_runner_and_training_bench_take_the_device(tmp_path):
-    import csv
-
+def test_training_bench_takes_the_device(tmp_path):
     from bench.train import main as bench_main
-    from protocols.patterns import main as patterns_main
 
-    assert patterns_main(["--patterns", "circle4", "--methods", "3dgs", "--counts", "4", "--seeds", "0",
-                          "--steps", "2", "--size", "8", "--no-renders", "--device", "cpu",
-                          "--out", str(tmp_path / "t1")]) == 0
-    rows = list(csv.DictReader((tmp_path / "t1/cells.csv").open()))
-    assert [(r["status"], r["device"]) for r in rows] == [("ok", device_name(CPU))]
     assert bench_main(["--scenes", "pattern4", "--methods", "3dgs", "--steps", "1", "--warmup", "0",
                        "--device", "cpu", "--json", str(tmp_path / "b.json")]) == 0
     assert json.loads((tmp_path / "b.json").read_text())[0]["device"] == device_name(CPU)

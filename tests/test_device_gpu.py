@@ -65,17 +65,17 @@ def test_a_gpu_run_is_bit_reproducible_in_its_forward_only(method):
     assert torch.equal(a.render(cam).rgb, b.render(cam).rgb)
 
 
-def test_table1_runner_and_training_bench_on_cuda(tmp_path):
-    import csv
+def test_table1_experiment_and_training_bench_on_cuda(tmp_path):
     import json
 
     from bench.train import main as bench_main
-    from protocols.patterns import main as patterns_main
 
-    assert patterns_main(["--patterns", "circle4", "--counts", "4", "--seeds", "0", "--steps", "200",
-                          "--device", "cuda", "--out", str(tmp_path / "t1")]) == 0
-    rows = list(csv.DictReader((tmp_path / "t1/cells.csv").open()))
-    assert all(r["status"] == "ok" and r["device"].startswith("cuda:0 ") and r["backend"] == "cuda" for r in rows)
+    s = run_experiment(["+experiment=patterns", "grid.scenes=[circle4]", "grid.budgets=[cap4]", "grid.seeds=[0]",
+                        "dataset.steps=200", "device=cuda", "report=false", f"out_dir={tmp_path / 't1'}"])
+    assert sorted(x["status"] for x in s) == ["ok"] * 4, s
+    for m in METHODS:
+        res = read_result(tmp_path / f"t1/patterns/circle4/{m}/cap4/seed0/results.json")
+        assert res.versions["device"].startswith("cuda:0 ") and res.versions["backend"] == "cuda"
     assert bench_main(["--scenes", "pattern256", "scene3d", "--steps", "20", "--device", "cuda",
                        "--json", str(tmp_path / "b.json")]) == 0
     assert all(r["device"].startswith("cuda:0 ") for r in json.loads((tmp_path / "b.json").read_text()))

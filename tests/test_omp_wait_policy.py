@@ -35,7 +35,7 @@ def _policy(mod: str, preset: str | None) -> str:
     return out.stdout.split()
 
 
-@pytest.mark.parametrize("mod", ["smgs", "protocols.cell", "protocols.patterns", "bench.raster", "bench.train"])
+@pytest.mark.parametrize("mod", ["smgs", "protocols.cell", "bench.raster", "bench.train"])
 def test_entry_points_set_passive_before_torch(mod):
     assert _policy(mod, None) == ["PASSIVE", "True"]
 
