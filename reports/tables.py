@@ -193,18 +193,23 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
                             "num_gaussians": gs.mean, "note": "; ".join(([v.reason] if v.reason else [])
                                                                         + list(v.notes))})
     sec.records = records
-    means = defaultdict(dict)
-    for (pattern, cap, m, p), rs in cells.items():
-        v = aggregate(rs, PSNR)
-        if v.ok:
-            means[(pattern, cap, p)][m] = v.mean
-    sec.subsections.append(ordering_section(dict(sorted(means.items())),
-                                            {(pt, cap): ctx.paper.t1(pt, "softmax_gs", cap) for pt, cap, _ in means}))
+    sec.subsections.append(_table1_ordering(cells, ctx))
     sec.notes += mix_notes(pats)
     if no_cap:
         sec.notes.append(f"{len(no_cap)} pattern run(s) record no Gaussian cap and are left out: "
                          + ", ".join(f"{r.scene}/{r.method}/{r.budget}/seed{r.seed}" for r in no_cap[:10]))
     return sec
+
+
+def _table1_ordering(cells: dict[tuple, list[RunResult]], ctx: Context) -> Section:
+    """The ordering check on the seed means of each (pattern, cap, preset) (``reports.ordering``)."""
+    means: dict[tuple, dict[str, float]] = defaultdict(dict)
+    for (pattern, cap, m, p), rs in cells.items():
+        v = aggregate(rs, PSNR)
+        if v.ok:
+            means[(pattern, cap, p)][m] = v.mean
+    paper = {(pt, cap): ctx.paper.t1(pt, "softmax_gs", cap) for pt, cap, _ in means}
+    return ordering_section(dict(sorted(means.items())), paper)
 
 
 # ---- Table 2 ----------------------------------------------------------------------------------
