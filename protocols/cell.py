@@ -116,7 +116,7 @@ def _finished(res_path: Path, h: str, force: bool) -> bool:
 
 def _failed(key: str, run_dir: Path, base: RunResult, e: Exception, log: logging.Logger | None) -> dict:
     """Record a failed (or skipped, for missing data) cell in its results.json where it can."""
-    from protocols.datasets import DatasetMissing
+    from protocols.cell_scene import DatasetMissing
 
     if log:
         log.error(traceback.format_exc())

@@ -57,7 +57,7 @@ def evaluation_config(ply: Path, overrides: list[str]) -> dict:
 def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
     """Evaluate one PLY; returns ``run_cell``'s summary plus the run directory."""
     from protocols.cell import result_hash, run_cell
-    from protocols.datasets import check_available
+    from protocols.cell_scene import check_available
     from protocols.results import RESULTS_FILE, read_result
     from protocols.results import POINTER
 

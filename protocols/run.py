@@ -80,7 +80,7 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
 
 def _preflight(payloads: list[dict]) -> None:
     """With on_missing=error, a missing dataset stops the experiment before anything runs."""
-    from protocols.datasets import check_available
+    from protocols.cell_scene import check_available
 
     problems = []
     for p in payloads:

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from protocols.datasets import load_scene_for
+from protocols.cell_scene import load_scene_for
 from protocols.eval_config import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot

@@ -27,8 +27,8 @@ from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
 from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
-from reports.stability import compute_stability, stability_section
-from reports.table import Section, md_text
+from reports.stability_section import compute_stability, stability_section
+from reports.table_model import Section, md_text
 from reports.tables import Context, table1, table2, table3, table4, table5
 from reports.tradeoff import tradeoff_points
 

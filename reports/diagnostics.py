@@ -27,7 +27,7 @@ from reports.paper import (KMAX_COVERAGE, KMAX_COVERAGE_RANGE, dataset_label, da
                            method_label, row_label, scene_rank)
 from reports.plots import Plot, _png, color
 from reports.runs import Value, is_pattern
-from reports.table import Column, Row, Section, Table, percent, sig
+from reports.table_model import Column, Row, Section, Table, percent, sig
 from reports.tables import Context, row_order
 
 QUANTILES = ("p05", "p25", "p50", "p75", "p95", "mean")

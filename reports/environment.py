@@ -7,7 +7,7 @@ import platform
 from collections import Counter
 
 from protocols.results import RunResult
-from reports.table import md_text
+from reports.table_model import md_text
 from smgs.env import cpu_model, git_revision
 
 ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),

@@ -17,7 +17,7 @@ from reports.paper import (DATASET_SCENES, PATTERNS, GROUP_LABELS, GROUP_ORDER, 
                            row_label, scene_rank)
 from reports.runs import (Value, aggregate, consistency_getter, field_getter, flow_estimator, is_pattern,
                           metric, one_line, pattern_cap, preset_description)
-from reports.table import Column, Row, Section, Table, count, fixed
+from reports.table_model import Column, Row, Section, Table, count, fixed
 
 RowKey = tuple[str, str, str]  # (method, budget, preset)
 REFERENCE_NOTE = ("[reference renderer] = rendered with the PyTorch reference backend (results.json versions), "

@@ -231,7 +231,7 @@ def test_a_protocol_cell_trains_evaluates_and_resumes_on_the_run_device(tmp_path
     from hydra import compose, initialize_config_dir
 
     from protocols.cell import run_cell
-    from protocols.datasets import load_scene_for
+    from protocols.cell_scene import load_scene_for
     from protocols.run import CONFIG_DIR, plan
 
     ov = ["+experiment=smoke", "grid.methods=[softmax_gs]", "protocol.steps=6", "report=false",

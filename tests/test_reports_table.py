@@ -8,7 +8,7 @@ from protocols.results import RunResult
 from reports.paper import load_paper, paper_key, row_label
 from reports.plots import pareto_front
 from reports.runs import Value, aggregate, consistency_getter, metric, pattern_cap
-from reports.table import Column, Row, Table, count, fixed, ratio_text
+from reports.table_model import Column, Row, Table, count, fixed, ratio_text
 from reports.tables import PSNR, dataset_means
 
 

@@ -19,9 +19,9 @@ from reports.environment import environment_rows, this_machine
 from reports.html.escape import esc, script_json
 from reports.html.figures import Figure, consistency_figures, params_figure, pareto_figures, run_name, time_figures
 from reports.html.images import strips, viewers
-from reports.html.tables import plain_table, records_table, section_html
+from reports.html.tables_html import plain_table, records_table, section_html
 from reports.runs import LoadedRuns, one_line, preset_description
-from reports.table import Section
+from reports.table_model import Section
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 RUN_COLUMNS = ["dataset", "scene", "method", "budget", "cap", "seed", "preset", "status", "psnr", "ssim", "lpips",

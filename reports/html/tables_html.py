@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Callable, Iterable, Sequence
 
 from reports.html.escape import esc
-from reports.table import Cell, Section, Table
+from reports.table_model import Cell, Section, Table
 
 
 def table_html(table: Table, table_id: str) -> str:

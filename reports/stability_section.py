@@ -15,7 +15,7 @@ import math
 from collections import defaultdict
 
 from reports.runs import Value, one_line
-from reports.table import Column, Row, Section, Table, sci
+from reports.table_model import Column, Row, Section, Table, sci
 
 REQUESTED_BACKENDS = ("reference", "cpu")
 KEYS = ("case", "mode", "backend", "dtype", "max_abs_err", "max_grad_rel_err", "nonfinite_outputs",
