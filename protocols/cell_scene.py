@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from protocols.eval_config import EvalConfig
+from protocols.sections import EvalConfig, ProtocolConfig
 from smgs.data.scene import DatasetNotFoundError, Scene
 
 DatasetMissing = DatasetNotFoundError
@@ -13,9 +13,9 @@ TRAJECTORY_BETWEEN = 128
 
 def _rule(cfg: dict) -> tuple[str, int | None]:
     """The resolution rule name and, for the cpu preset, its maximum width."""
-    proto = cfg["protocol"]
-    rule = cfg["dataset"].get("rule") or proto.get("resolution") or "paper"
-    return str(rule), (int(proto["max_width"]) if rule == "cpu" and proto.get("max_width") else None)
+    proto = ProtocolConfig.of(cfg)
+    rule = cfg["dataset"].get("rule") or proto.resolution
+    return str(rule), (proto.max_width if rule == "cpu" and proto.max_width else None)
 
 
 def load_scene_for(cfg: dict) -> Scene:
@@ -25,7 +25,7 @@ def load_scene_for(cfg: dict) -> Scene:
     ds = cfg["dataset"]
     kind = ds["kind"]
     scene = str(cfg["scene"])
-    test_every = int(cfg["protocol"].get("test_every", 8))
+    test_every = ProtocolConfig.of(cfg).test_every
     traj = TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None
     if kind == "pattern":
         from smgs.data.patterns import pattern_scene

@@ -8,6 +8,7 @@ from typing import Any
 
 from baselines.method import RunSettings
 from baselines.registry import merge_config
+from protocols.sections import BudgetConfig, ProtocolConfig
 
 
 def method_settings(cfg: dict) -> dict[str, Any]:
@@ -19,11 +20,9 @@ def method_settings(cfg: dict) -> dict[str, Any]:
 def run_settings(cfg: dict) -> RunSettings:
     """The cell's steps (a dataset with its own step count keeps its own schedule), seed, budget
     and renderer backend."""
-    budget = cfg["budget"]
+    budget, protocol = BudgetConfig.of(cfg), ProtocolConfig.of(cfg)
     own_steps = cfg["dataset"].get("steps")
-    return RunSettings(steps=int(own_steps or cfg["protocol"]["steps"]), seed=int(cfg["seed"]),
-                       budget=str(budget["name"]), preset=str(budget.get("preset", budget["name"])),
-                       grad_threshold=budget.get("densify_grad_threshold"),
-                       cap=None if budget.get("cap") is None else int(budget["cap"]),
-                       schedule_steps=None if own_steps else cfg["protocol"].get("schedule_steps"),
+    return RunSettings(steps=int(own_steps or protocol.steps), seed=int(cfg["seed"]), budget=budget.name,
+                       preset=budget.kind, grad_threshold=budget.densify_grad_threshold, cap=budget.cap,
+                       schedule_steps=None if own_steps else protocol.schedule_steps,
                        backend=cfg.get("backend", "auto"))

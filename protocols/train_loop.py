@@ -16,7 +16,7 @@ import torch
 from PIL import Image
 
 from protocols.cell_scene import load_scene_for
-from protocols.eval_config import EvalConfig
+from protocols.sections import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
 from protocols.progress import progress as progress_bar

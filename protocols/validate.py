@@ -60,12 +60,13 @@ def config_problems(cfg: dict) -> list[str]:
     if backend != "auto" and backend not in BACKEND_NAMES:
         problems.append(f"backend={backend!r} is not a renderer backend; expected auto, {', '.join(BACKEND_NAMES)}")
     if not problems:
-        from protocols.eval_config import EvalConfig
+        from protocols.sections import BudgetConfig, EvalConfig, ProtocolConfig
 
-        try:
-            EvalConfig.of(cfg)
-        except (ValueError, TypeError) as e:
-            problems.append(str(e))
+        for section in (EvalConfig, ProtocolConfig, BudgetConfig):
+            try:
+                section.of(cfg)
+            except (ValueError, TypeError) as e:
+                problems.append(str(e))
     if not problems:
         problems += _method_problems(cfg)
     return problems
