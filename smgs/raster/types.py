@@ -63,3 +63,4 @@ class RenderOutput:
     stats: RenderStats
     reg: torch.Tensor | None = None
     extras: dict = field(default_factory=dict)
+

@@ -1,0 +1,144 @@
+"""sort="per_pixel" (StopThePop's per-pixel order by the peak depth along each ray) on the reference
+backend: the closed form of the peak depth, agreement with the global order where both must agree,
+and the order it changes where the global one is wrong."""
+
+import math
+
+import pytest
+import torch
+
+from smgs.camera import Camera
+from smgs.raster import MODES, rasterize
+from smgs.raster.projection import quat_to_rotmat
+from smgs.raster.ray_depth import ray_depth
+from smgs.raster.reference import peak_depth
+
+
+def _camera(w=24, h=20, dtype=torch.float32):
+    """A camera 4 units from the origin looking roughly at it, its rotation orthonormal in float64
+    (look_at rounds it to float32, which moves the peak depths by ~1e-7)."""
+    R = quat_to_rotmat(torch.tensor([0.99, 0.05, -0.08, 0.02], dtype=torch.float64))
+    V = torch.eye(4, dtype=torch.float64)
+    V[:3, :3] = R
+    V[:3, 3] = torch.tensor([0.3, -0.2, 4.0], dtype=torch.float64)
+    K = torch.tensor([[30.0, 0, w / 2], [0, 30.0, h / 2], [0, 0, 1]], dtype=torch.float64)
+    return Camera(K.to(dtype), V.to(dtype), w, h)
+
+
+def _pixel_rays(cam: Camera, n: int, seed: int):
+    """n random pixel positions, their (u, v) = ((x - cx)/fx, (y - cy)/fy) and world rays."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, generator=g, dtype=torch.float64) * cam.width
+    y = torch.rand(n, generator=g, dtype=torch.float64) * cam.height
+    K = cam.K.double()
+    u, v = (x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1]
+    R = cam.viewmat.double()[:3, :3]
+    d_world = torch.stack([u, v, torch.ones_like(u)], 1) @ R    # Rᵀ d_cam per row
+    return u, v, d_world, cam.center.double()
+
+
+def test_peak_depth_is_the_closed_form_and_the_maximum_along_the_ray():
+    g = torch.Generator().manual_seed(1)
+    n = 7
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.5
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    scales = 0.05 + 0.4 * torch.rand(n, 3, generator=g, dtype=torch.float64)
+    cam = _camera(dtype=torch.float64)
+    rd = ray_depth(means, quats, scales, cam)
+    u, v, d, o = _pixel_rays(cam, 50, seed=2)
+    got = peak_depth(rd.coefs, u, v, torch.zeros(n))            # [P, N] camera z = ray parameter
+    R = quat_to_rotmat(quats)
+    Sinv = torch.linalg.inv(R @ torch.diag_embed(scales**2) @ R.transpose(1, 2))   # world Σ⁻¹
+    # t* = dᵀΣ⁻¹(μ - o) / dᵀΣ⁻¹d with the world ray o + t·d (d has camera z = 1, so t is the depth)
+    num = torch.einsum("pi,nij,nj->pn", d, Sinv, means - o)
+    den = torch.einsum("pi,nij,pj->pn", d, Sinv, d)
+    torch.testing.assert_close(got, num / den, rtol=1e-10, atol=1e-10)
+    # and it is the maximum of the response along the ray
+    def response(t):
+        x = o + t[..., None] * d[:, None, :]                     # [P, N, 3]
+        r = x - means
+        return -0.5 * torch.einsum("pni,nij,pnj->pn", r, Sinv, r)
+    for eps in (1e-3, -1e-3):
+        assert (response(got) > response(got + eps)).all()
+
+
+def test_a_flat_splat_peaks_where_the_ray_meets_its_plane():
+    cam = _camera(dtype=torch.float64)
+    normal_quat = torch.tensor([[math.cos(0.3), math.sin(0.3), 0.0, 0.0]], dtype=torch.float64)  # tilted about x
+    means = torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64)
+    scales = torch.tensor([[0.5, 0.5, 0.0]], dtype=torch.float64)
+    rd = ray_depth(means, normal_quat, scales, cam)
+    u, v, d, o = _pixel_rays(cam, 30, seed=3)
+    nrm = quat_to_rotmat(normal_quat)[0, :, 2]
+    t_plane = ((means[0] - o) @ nrm) / (d @ nrm)
+    torch.testing.assert_close(peak_depth(rd.coefs, u, v, torch.zeros(1))[:, 0], t_plane, rtol=1e-10, atol=1e-10)
+
+
+def _scene(dtype=torch.float64):
+    """Five round splats, well apart in depth, overlapping on screen."""
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.15, 0.1, 0.8], [-0.1, 0.05, 1.6], [0.05, -0.1, -0.8],
+                          [0.2, 0.2, 2.4]], dtype=dtype)
+    n = means.shape[0]
+    g = torch.Generator().manual_seed(4)
+    return dict(means3d=means, quats=torch.tensor([[1.0, 0, 0, 0]], dtype=dtype).repeat(n, 1),
+                scales=torch.full((n, 3), 0.25, dtype=dtype), opacities=torch.full((n,), 0.7, dtype=dtype),
+                colors_or_sh=torch.rand(n, 3, generator=g, dtype=dtype),
+                alpha=1 + torch.rand(n, generator=g, dtype=dtype), beta=5 * torch.rand(n, generator=g, dtype=dtype),
+                gamma=torch.rand(n, generator=g, dtype=dtype))
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_per_pixel_equals_global_for_spheres_far_apart_in_depth(mode):
+    cam = _camera()
+    outs, grads = {}, {}
+    for sort in ("global", "per_pixel"):
+        sc = {k: t.clone().requires_grad_(True) for k, t in _scene().items()}
+        out = rasterize(**sc, camera=cam.to(dtype=torch.float64), mode=mode, k_max=3, backend="reference",
+                        sort=sort)
+        (out.rgb.sum() + 0.5 * out.depth.sum()).backward()
+        outs[sort] = out
+        grads[sort] = {k: t.grad for k, t in sc.items()}
+    assert outs["global"].alpha.max() > 0.5    # the splats are on screen and overlap
+    for f in ("rgb", "alpha", "depth"):
+        torch.testing.assert_close(getattr(outs["per_pixel"], f), getattr(outs["global"], f), rtol=0, atol=1e-12)
+    assert torch.equal(outs["per_pixel"].stats.n_contrib, outs["global"].stats.n_contrib)
+    for k, gw in grads["global"].items():
+        gp = grads["per_pixel"][k]
+        assert (gw is None) == (gp is None), k
+        if gw is not None:
+            torch.testing.assert_close(gp, gw, rtol=0, atol=1e-12, msg=k)
+
+
+def test_per_pixel_order_follows_two_crossing_planes():
+    """Two large flat splats on planes crossing at 30° through the same centre depth: left of the
+    crossing one is in front along the rays, right of it the other. The global order (centre
+    depths, nearly equal) puts one in front everywhere; the per-pixel order shows each where it
+    is in front."""
+    w, h = 32, 8
+    cam = Camera.look_at([0.0, 0.0, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 40.0, w, h)
+    half = math.radians(15)
+    # plane normals in the x-z plane at ±15° from the view axis: rotation about y
+    quats = torch.tensor([[math.cos(half / 2), 0, math.sin(half / 2), 0],
+                          [math.cos(-half / 2), 0, math.sin(-half / 2), 0]], dtype=torch.float64)
+    sc = dict(means3d=torch.tensor([[0.0, 0, 0.0], [0.0, 0, 1e-6]], dtype=torch.float64), quats=quats,
+              scales=torch.tensor([[2.0, 2.0, 0.0], [2.0, 2.0, 0.0]], dtype=torch.float64),
+              opacities=torch.tensor([0.95, 0.95], dtype=torch.float64),
+              colors_or_sh=torch.tensor([[1.0, 0, 0], [0, 0, 1.0]], dtype=torch.float64))
+    camd = cam.to(dtype=torch.float64)
+    glob = rasterize(**sc, camera=camd, mode="3dgs", backend="reference", sort="global").rgb
+    per = rasterize(**sc, camera=camd, mode="3dgs", backend="reference", sort="per_pixel").rgb
+    red_front = (per[..., 0] > per[..., 2])[h // 2]
+    # splat 0 (normal tilted +15° about y) is nearer on one side of the image centre, splat 1 on the other
+    assert red_front[:8].all() != red_front[-8:].all()
+    assert red_front[:8].all() or red_front[-8:].all()
+    g_red = (glob[..., 0] > glob[..., 2])[h // 2]
+    assert g_red.all() or (~g_red).all()          # the global order: one colour in front everywhere
+    assert not torch.equal(red_front, g_red)
+
+
+def test_bad_sort_and_a_compiled_backend_are_refused_with_the_fix():
+    sc = _scene(torch.float32)
+    with pytest.raises(ValueError, match="sort must be one of"):
+        rasterize(**sc, camera=_camera(), mode="3dgs", backend="reference", sort="tile")
+    with pytest.raises(ValueError, match="backend='reference' or 'auto'"):
+        rasterize(**sc, camera=_camera(), mode="3dgs", backend="cpu", sort="per_pixel")
