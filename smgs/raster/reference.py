@@ -190,8 +190,11 @@ def _splat(k, means2d, conics, opacities, colors, depths, alpha, beta, gamma, re
 
 
 def _pixel_order(means2d, conics, depths, ray_depth, px, py) -> torch.Tensor:
-    """[P, L] splat indices per pixel, nearest peak depth first (ties by index), the splats whose
-    3σ ellipse misses the pixel after all others and cut where no pixel has any left."""
+    """[P, L] splat indices per pixel, nearest peak depth first, the splats whose 3σ ellipse misses
+    the pixel after all others and cut where no pixel has any left. Peak depths are compared as
+    float32 (as a float32 kernel keeps them), and equal ones keep the global order (StopThePop
+    re-sorts the globally sorted list): coplanar splats, whose peak depths differ only by rounding,
+    are taken in the global order."""
     with torch.no_grad():
         u = (px - ray_depth.cx) / ray_depth.fx
         v = (py - ray_depth.cy) / ray_depth.fy
@@ -203,8 +206,9 @@ def _pixel_order(means2d, conics, depths, ray_depth, px, py) -> torch.Tensor:
         q = torch.where(ha != 0, ha * w * w, r * dx * dy) + hs * dy * dy
         # a margin past 3σ: the float32 q of a splat just inside must never be cut
         inside = q <= -K.P_MIN * (1 + 1e-4) + 1e-6
-        t = torch.where(inside, t, torch.full_like(t, torch.inf))
-        order = torch.sort(t, dim=1, stable=True).indices
+        g = _sorted_order(depths)
+        t = torch.where(inside, t.float(), torch.full_like(t, torch.inf, dtype=torch.float32))[:, g]
+        order = g[torch.sort(t, dim=1, stable=True).indices]
         width = int(inside.sum(1).max()) if inside.numel() else 0
         return order[:, :width]
 
