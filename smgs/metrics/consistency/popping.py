@@ -26,6 +26,7 @@ same splats through each compositing rule.
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 import statistics
 from dataclasses import dataclass, field
 
@@ -194,6 +195,23 @@ def popping_table(scenes: dict[str, FlipScene] | None = None, methods: tuple[Pop
     its ratio there must be 1 ± noise); a flip scene whose centres do not swap there is an error."""
     scenes = flip_scenes() if scenes is None else scenes
     cameras = orbit_path() if cameras is None else cameras
+    with _one_thread():
+        return _table(scenes, methods, cameras, backend, keep_frames)
+
+
+@contextmanager
+def _one_thread():
+    """Renders of a few splats at 64x48 are per-op overhead: more threads only wait on each other
+    (3 s on one thread, over a minute on two busy cores). The caller's setting comes back after."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
+def _table(scenes, methods, cameras, backend, keep_frames):
     middle = len(cameras) // 2 - 1
     results, kept = [], {}
     for s in scenes.values():
