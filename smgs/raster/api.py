@@ -11,9 +11,9 @@ from smgs.camera import Camera
 from smgs.raster import checks
 from smgs.raster import constants as K
 from smgs.raster.projection import project_gaussians
-from smgs.raster.ray_depth import RayDepth, check_sort, ray_depth
+from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import eval_sh
-from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+from smgs.raster.types import Eq15, RayDepth, RenderOutput, RenderStats, mode_flags
 
 # name -> (module, function); every backend takes the same arguments, t_min included. Imported
 # lazily so that listing backends never compiles or loads a kernel.

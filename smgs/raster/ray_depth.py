@@ -14,29 +14,13 @@ centre depth is used. No gradient: the order is not differentiated.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from smgs.camera import Camera
 from smgs.raster.projection import quat_to_rotmat
+from smgs.raster.types import RayDepth
 
 SORTS: tuple[str, ...] = ("global", "per_pixel")
-
-
-@dataclass(frozen=True)
-class RayDepth:
-    """What a backend needs to order each pixel's splats by the peak depth along its ray.
-
-    coefs [M, 9] per projected splat, float64: (Qxx, Qxy, Qxz, Qyy, Qyz, Qzz, bx, by, bz) in camera
-    coordinates; fx, fy, cx, cy: the camera's intrinsics (pixel centres at +0.5).
-    """
-
-    coefs: torch.Tensor
-    fx: float
-    fy: float
-    cx: float
-    cy: float
 
 
 def check_sort(sort: str) -> str:

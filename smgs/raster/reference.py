@@ -36,8 +36,7 @@ from dataclasses import dataclass
 import torch
 
 from smgs.raster import constants as K
-from smgs.raster.ray_depth import RayDepth
-from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+from smgs.raster.types import Eq15, RayDepth, RenderOutput, RenderStats, mode_flags
 
 
 def _sorted_order(depths: torch.Tensor) -> torch.Tensor:
