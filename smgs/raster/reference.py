@@ -193,23 +193,29 @@ def _pixel_order(means2d, conics, depths, ray_depth, px, py) -> torch.Tensor:
     the pixel after all others and cut where no pixel has any left. Peak depths are compared as
     float32 (as a float32 kernel keeps them), and equal ones keep the global order (StopThePop
     re-sorts the globally sorted list): coplanar splats, whose peak depths differ only by rounding,
-    are taken in the global order."""
+    are taken in the global order. Formed in chunks of pixels (at most ~2^22 pixel-splat pairs)."""
+    n = means2d.shape[0]
+    g = _sorted_order(depths)
     with torch.no_grad():
-        u = (px - ray_depth.cx) / ray_depth.fx
-        v = (py - ray_depth.cy) / ray_depth.fy
-        t = peak_depth(ray_depth.coefs, u, v, depths)                              # [P, N]
-        ha, r, hs = (x.double() for x in conic_factor(conics))                     # [N] each
-        dx = px.double()[:, None] - means2d[:, 0].double()
-        dy = py.double()[:, None] - means2d[:, 1].double()
-        w = dx + r * dy
-        q = torch.where(ha != 0, ha * w * w, r * dx * dy) + hs * dy * dy
-        # a margin past 3σ: the float32 q of a splat just inside must never be cut
-        inside = q <= -K.P_MIN * (1 + 1e-4) + 1e-6
-        g = _sorted_order(depths)
-        t = torch.where(inside, t.float(), torch.full_like(t, torch.inf, dtype=torch.float32))[:, g]
-        order = g[torch.sort(t, dim=1, stable=True).indices]
-        width = int(inside.sum(1).max()) if inside.numel() else 0
-        return order[:, :width]
+        ha, r, hs = (x.double()[g] for x in conic_factor(conics))                  # [N] each
+        mx, my, coefs = means2d[g, 0].double(), means2d[g, 1].double(), ray_depth.coefs[g]
+        fallback = depths[g]
+        orders, counts = [], []
+        step = max(1, (1 << 22) // max(n, 1))
+        for lo in range(0, px.shape[0], step):
+            cx, cy = px[lo:lo + step], py[lo:lo + step]
+            t = peak_depth(coefs, (cx - ray_depth.cx) / ray_depth.fx, (cy - ray_depth.cy) / ray_depth.fy, fallback)
+            dx = cx.double()[:, None] - mx
+            dy = cy.double()[:, None] - my
+            w = dx + r * dy
+            q = torch.where(ha != 0, ha * w * w, r * dx * dy) + hs * dy * dy
+            # a margin past 3σ: the float32 q of a splat just inside must never be cut
+            inside = q <= -K.P_MIN * (1 + 1e-4) + 1e-6
+            t = torch.where(inside, t.float(), torch.full_like(t, torch.inf, dtype=torch.float32))
+            orders.append(g[torch.sort(t, dim=1, stable=True).indices])
+            counts.append(inside.sum(1))
+        width = int(torch.cat(counts).max()) if counts else 0
+        return torch.cat([o[:, :width] for o in orders])
 
 
 def rasterize_splats_reference(
