@@ -159,7 +159,7 @@ def rasterize_splats(
                              f"got {tuple(ray_depth.coefs.shape)}")
         if backend not in ("auto", "reference"):
             raise ValueError(f"sort='per_pixel' renders on the reference backend only (the compiled "
-                             f"backends sort per tile); use backend='reference' or 'auto', not {backend!r}")
+                             f"backends sort all splats by their centres); use backend='reference' or 'auto', not {backend!r}")
         backend = "reference"
     name = resolve_backend(backend, means2d.device, means2d.dtype)
     fn = _load_backend(name)
