@@ -110,6 +110,13 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
                   + [("background", background), ("reg_values", reg_values)], pos_inf_ok=("gamma",))
 
 
+def _per_pixel_backend(device: torch.device, dtype: torch.dtype, inputs: tuple) -> str:
+    """``auto`` for sort="per_pixel": the CPU re-sorting window where no gradient is needed (it has
+    no backward), else the reference's exact order."""
+    needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs)
+    return "cpu" if not needs_grad and backend_available("cpu", device, dtype) else "reference"
+
+
 def rasterize_splats(
     means2d: torch.Tensor,
     conics: torch.Tensor,
@@ -142,8 +149,10 @@ def rasterize_splats(
     (the weights carry no gradient). ``t_min``: a splat whose vanilla update would bring the
     transmittance below it is not composited and the pixel stops (default 1e-4, the 3DGS rule;
     0 never stops). ``ray_depth`` (from ``smgs.raster.ray_depth.ray_depth``): each pixel orders its
-    splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``;
-    only the reference backend sorts per pixel so far (``auto`` picks it).
+    splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``:
+    exactly on the reference backend, through a re-sorting window of ``constants.SORT_WINDOW``
+    splats and without gradients on the cpu backend (``auto`` picks it where no gradient is needed),
+    not on cuda.
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
@@ -157,10 +166,12 @@ def rasterize_splats(
         if ray_depth.coefs.shape != (means2d.shape[0], 9):
             raise ValueError(f"ray_depth.coefs must be [N,9] for the N={means2d.shape[0]} splats, "
                              f"got {tuple(ray_depth.coefs.shape)}")
-        if backend not in ("auto", "reference"):
-            raise ValueError(f"sort='per_pixel' renders on the reference backend only (the compiled "
-                             f"backends sort all splats by their centres); use backend='reference' or 'auto', not {backend!r}")
-        backend = "reference"
+        if backend == "cuda":
+            raise ValueError("sort='per_pixel' has no CUDA kernel yet; use backend='reference' or 'auto'")
+        if backend == "auto":
+            backend = _per_pixel_backend(means2d.device, means2d.dtype,
+                                         (means2d, conics, opacities, colors, depths, alpha, beta, gamma,
+                                          background, reg_values))
     name = resolve_backend(backend, means2d.device, means2d.dtype)
     fn = _load_backend(name)
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
@@ -201,7 +212,7 @@ def rasterize(
     densification strategy can read the 2D mean gradients (call ``retain_grad`` on ``means2d``).
     ``sort``: ``"global"`` orders all splats by the view depth of their centres (3DGS);
     ``"per_pixel"`` orders each pixel's splats by the depth along its ray where the 3D Gaussian's
-    response peaks (StopThePop; ``smgs.raster.ray_depth``), exactly, on the reference backend. The
+    response peaks (StopThePop; ``smgs.raster.ray_depth``; backends as ``rasterize_splats``). The
     order is not differentiated; the compositing and its gradients are those of the mode.
     """
     check_sort(sort)

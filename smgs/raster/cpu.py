@@ -28,11 +28,11 @@ from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
                                      kernel_output)
-from smgs.raster.types import Eq15, RenderOutput
+from smgs.raster.types import Eq15, RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # The torch glue first; the compositing core's three units build in parallel with it (ninja).
-_SOURCES = ("cpu_kernel.cpp", "cpu_fwd.cpp", "cpu_bwd.cpp", "cpu_bwd_soft.cpp")
+_SOURCES = ("cpu_kernel.cpp", "cpu_fwd.cpp", "cpu_bwd.cpp", "cpu_bwd_soft.cpp", "cpu_pixel.cpp")
 
 _JIT = cpu_extension("smgs_raster_cpu", [_CSRC / s for s in _SOURCES], "renderer backend", [_CSRC])
 is_available = _JIT.is_available
@@ -90,6 +90,22 @@ class _RasterizeCPU(torch.autograd.Function):
         return kernel_grads(ctx, grads, g_rgb, t_final)
 
 
+def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth, window: int) -> RenderOutput:
+    """sort="per_pixel" through the re-sorting window (forward only; csrc/cpu_pixel.cpp)."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, _ = args
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in args):
+        raise ValueError("sort='per_pixel' on the cpu backend renders without gradients (forward only); "
+                         "render under torch.no_grad(), or train with backend='reference' (exact order)")
+    empty = means2d.new_empty(0)
+    opt = lambda t: empty if t is None else t  # noqa: E731
+    intr = torch.tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy], dtype=torch.float32)
+    rgb, alpha_out, depth, cnt, _, pairs = extension().forward_pixel(
+        means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(bg),
+        ray_depth.coefs.to(torch.float32).contiguous(), intr, st.width, st.height, st.use_gef, st.use_softmax,
+        st.k_max, st.solved, torch.get_num_threads(), st.t_min, int(window))
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
+
+
 def rasterize_splats_cpu(
     means2d: torch.Tensor,
     conics: torch.Tensor,
@@ -108,10 +124,15 @@ def rasterize_splats_cpu(
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
+    ray_depth: RayDepth | None = None,
+    window: int = K.SORT_WINDOW,
 ) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
-    ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here."""
+    ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
+    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats, forward only."""
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    if ray_depth is not None:
+        return _per_pixel(st, args, ray_depth, window)
     rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCPU.apply(*args, st)
     return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs)
