@@ -93,8 +93,8 @@ def quadratic_form(dx: torch.Tensor, dy: torch.Tensor, conic: torch.Tensor) -> t
 
 def peak_depth(coefs: torch.Tensor, u: torch.Tensor, v: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
     """Camera-space depth where each splat's 3D response peaks along the ray d = (u, v, 1):
-    t* = b·d / dᵀQd (``smgs.raster.ray_depth``; a compiled per-pixel order gets its twin in
-    splat_math.h, which holds the per-splat math of the kernels). coefs
+    t* = b·d / dᵀQd (``smgs.raster.ray_depth``; the twin of peak_depth in splat_math.h, which the
+    CPU backend's re-sorting window uses). coefs
     [N, 9], u and v [P], fallback [N] (the centre depths, used where dᵀQd vanishes); returns [P, N]."""
     qxx, qxy, qxz, qyy, qyz, qzz, bx, by, bz = coefs.double().unbind(-1)
     u, v = u.double()[:, None], v.double()[:, None]
