@@ -33,6 +33,8 @@ BUILTINS: dict[str, MethodSpec] = {
     "softmax_gs": MethodSpec("softmax_gs", _SPLAT, {"mode": "softmax_gs"}, "Softmax-GS",
                              "GEF sharpness (α) + softmax competition (β, γ)"),
     "3dgs": MethodSpec("3dgs", _SPLAT, {"mode": "3dgs"}, "3D GS", "vanilla 3D Gaussian splatting"),
+    "stopthepop": MethodSpec("stopthepop", _SPLAT, {"mode": "3dgs", "sort": "per_pixel"}, "StopThePop",
+                             "3DGS compositing, each pixel's splats sorted by their peak depth on its ray"),
     "gef_only": MethodSpec("gef_only", _SPLAT, {"mode": "gef_only"}, "Sharp edge only",
                            "GEF sharpness (α), no softmax competition"),
     "softmax_only": MethodSpec("softmax_only", _SPLAT, {"mode": "softmax_only"}, "Softmax only",

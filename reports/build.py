@@ -26,6 +26,7 @@ from reports.environment import environment_markdown
 from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
+from reports.popping import popping_section, wants_popping
 from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
 from reports.stability_section import compute_stability, stability_section
 from reports.table_model import Section, md_text
@@ -62,6 +63,10 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
 
     sections = [_guard(f"Table {i}", lambda f=f: f(runs, ctx))
                 for i, f in enumerate((table1, table2, table3, table4, table5), start=1)]
+    section_plots: dict[str, list[Plot]] = {}
+    if wants_popping(runs):    # beside Table 4: rendering its scenes takes seconds, so only there
+        pop, section_plots["popping"] = _guard("Popping", lambda: popping_section(runs), with_plots=True)
+        sections.insert(4, pop)
     plots, plot_error = _guard_plots(lambda: _tradeoff_plots(runs))
     diag, diag_plots = _guard("Softmax-GS diagnostics", lambda: diagnostics_section(runs, ctx), with_plots=True)
 
@@ -79,12 +84,12 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
         if recs:
             files[f"tables/{sec.name}.csv"] = _csv(recs)
     files["tables/runs.csv"] = _csv(_run_records(loaded))
-    for p in [*plots, *diag_plots]:
+    for p in [*plots, *diag_plots, *(p for ps in section_plots.values() for p in ps)]:
         files[f"plots/{p.name}"] = p.png
 
     probed = sorted({str(row.get("backend")) for row in stability or [] if row.get("backend")}) if computed_here else []
     md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
-                   probed)
+                   probed, section_plots)
     files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
                               plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
                               csv_link=lambda name: _link(files, name)).encode()
@@ -130,7 +135,8 @@ def _guard_plots(build) -> tuple[list[Plot], str | None]:
 
 def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, sections: list[Section],
               plots: list[Plot], plot_error: str | None, diag: Section, diag_plots: list[Plot], stab: Section,
-              runs: list[RunResult], files: dict[str, bytes], probed: list[str]) -> str:
+              runs: list[RunResult], files: dict[str, bytes], probed: list[str],
+              section_plots: dict[str, list[Plot]] | None = None) -> str:
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = ["# smgs report", "",
@@ -150,6 +156,8 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
     out.append(_problems(loaded, runs))
     for sec in sections:
         out.append(sec.markdown(link=lambda name: _link(files, name)))
+        for p in (section_plots or {}).get(sec.name, []):
+            out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
     out.append("## Error against run time\n")
     if plots:
         for p in plots:

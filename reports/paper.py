@@ -13,7 +13,7 @@ from pathlib import Path
 
 PAPER_DIR = Path(__file__).resolve().parent / "paper_tables"
 
-METHOD_ORDER = ["3dgs", "gef_only", "softmax_only", "softmax_gs"]
+METHOD_ORDER = ["3dgs", "stopthepop", "gef_only", "softmax_only", "softmax_gs"]
 METHOD_LABELS = {
     "3dgs": "3D GS", "gef_only": "Sharp edge only", "softmax_only": "Softmax only",
     "softmax_gs": "Softmax-GS", "ges": "GES", "3dcs": "3DCS", "3d_hgs": "3D-HGS",

@@ -4,6 +4,8 @@ import sys
 import textwrap
 
 import pytest
+
+from smgs.raster import MODES
 import torch
 
 from baselines import (BUILTINS, ENTRY_POINT_GROUP, Method, MethodSpec, SceneNeeds, create_method,
@@ -77,7 +79,12 @@ def test_builtins_are_one_class_with_a_mode_switch():
     assert {"softmax_gs", "3dgs", "gef_only", "softmax_only"} <= set(list_methods())
     classes = {method_class(n) for n in BUILTINS}
     assert len(classes) == 1
-    assert {get_spec(n).fixed["mode"] for n in BUILTINS} == set(BUILTINS)
+    modes = {n: get_spec(n).fixed["mode"] for n in BUILTINS}
+    assert set(modes.values()) == set(MODES)
+    assert all(modes[m] == m for m in MODES)
+    # StopThePop is 3DGS compositing in each pixel's own depth order
+    assert get_spec("stopthepop").fixed == {"mode": "3dgs", "sort": "per_pixel"}
+    assert set(BUILTINS) == set(MODES) | {"stopthepop"}
     assert get_spec("softmax_gs").paper_name == "Softmax-GS"
 
 

@@ -43,6 +43,20 @@ def test_few_step_fit_decreases_loss(method):
     assert any("no SfM" in line for line in d["plan"])
 
 
+def test_stopthepop_trains_with_the_per_pixel_order():
+    scene = pattern_scene("circle4", 12)
+    cfg = _config("3dgs", steps=6)
+    del cfg["sort"]     # the method fixes it
+    m = create_method("stopthepop", scene, cfg, device=CPU)
+    assert m.config.mode == "3dgs" and m.config.sort == "per_pixel"
+    losses = [m.train_step(s)["loss"] for s in range(6)]
+    assert all(torch.isfinite(torch.tensor(losses)))
+    assert not torch.equal(m.trainer.gaussians.params["means"].detach(),
+                           create_method("stopthepop", scene, cfg, device=CPU)
+                           .trainer.gaussians.params["means"].detach())
+    assert m.describe()["config"]["sort"] == "per_pixel"
+
+
 def test_densification_grows_to_the_cap():
     scene = pattern_scene("rect4", 16)
     cfg = _config("softmax_gs", steps=30, cap=9)

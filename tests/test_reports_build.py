@@ -259,3 +259,17 @@ def test_a_broken_section_does_not_cost_the_report(tmp_path, monkeypatch, capsys
     assert "could not be built: KeyError: 'surprise'" in section(md, "Table 3")
     assert "21.00" in section(md, "Table 5")
     assert "KeyError" in capsys.readouterr().err
+
+
+def test_popping_sits_after_table4_with_its_strips(report):
+    path, md = report
+    assert md.index("## Table 4") < md.index("## Popping at a depth-order flip") < md.index("## Table 5")
+    pop = section(md, "Popping at a depth-order flip (next to Table 4)")
+    line = row(pop, "| crossing_30 |")
+    ratios = [float(c) for c in line.strip("|").split("|")[1:]]
+    assert len(ratios) == 7 and ratios[0] > 50 and ratios[1] < 2     # 3dgs pops, stopthepop does not
+    for scene in ("crossing_30", "coplanar_pair"):
+        assert f"](plots/popping_{scene}.png)" in pop
+    recs = read_csv(path.parent / "tables" / "popping.csv")
+    assert [r["scene"] for r in recs] == ["coplanar_pair", "crossing_30", "coplanar_four", "opaque_pair", "control"]
+    assert float(recs[4]["3dgs"]) == pytest.approx(1.0, abs=0.15)

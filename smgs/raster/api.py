@@ -11,8 +11,9 @@ from smgs.camera import Camera
 from smgs.raster import checks
 from smgs.raster import constants as K
 from smgs.raster.projection import project_gaussians
+from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import eval_sh
-from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+from smgs.raster.types import Eq15, RayDepth, RenderOutput, RenderStats, mode_flags
 
 # name -> (module, function); every backend takes the same arguments, t_min included. Imported
 # lazily so that listing backends never compiles or loads a kernel.
@@ -97,9 +98,23 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
             raise ValueError(f"mode {mode!r} needs {name} [N]; got None")
         if t.shape != (n,):
             raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+    if background is not None and background.numel() != colors.shape[1]:
+        raise ValueError(f"background must have {colors.shape[1]} channels (one per colour), "
+                         f"got {background.numel()}")
+    dev = means2d.device
+    for name, t in named[1:] + [("reg_values", reg_values)]:   # the background is moved where needed
+        if t is not None and t.device != dev:
+            raise TypeError(f"{name} is on {t.device} but means2d is on {dev}; give every input one device")
     used = {"alpha": use_gef, "beta": use_softmax, "gamma": use_softmax}
     checks.finite([(k, t) for k, t in named if used.get(k, True)]
                   + [("background", background), ("reg_values", reg_values)], pos_inf_ok=("gamma",))
+
+
+def _per_pixel_backend(device: torch.device, dtype: torch.dtype, inputs: tuple) -> str:
+    """``auto`` for sort="per_pixel": the CPU re-sorting window where no gradient is needed (it has
+    no backward), else the reference's exact order."""
+    needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs)
+    return "cpu" if not needs_grad and backend_available("cpu", device, dtype) else "reference"
 
 
 def rasterize_splats(
@@ -121,6 +136,7 @@ def rasterize_splats(
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
+    ray_depth: RayDepth | None = None,
 ) -> RenderOutput:
     """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
 
@@ -132,7 +148,11 @@ def rasterize_splats(
     first k_max splats of each pixel, weighted by 1/(1 + (d - d_front)/reg_depth_scale)
     (the weights carry no gradient). ``t_min``: a splat whose vanilla update would bring the
     transmittance below it is not composited and the pixel stops (default 1e-4, the 3DGS rule;
-    0 never stops).
+    0 never stops). ``ray_depth`` (from ``smgs.raster.ray_depth.ray_depth``): each pixel orders its
+    splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``:
+    exactly on the reference backend, through a re-sorting window of ``constants.SORT_WINDOW``
+    splats and without gradients on the cpu backend (``auto`` picks it where no gradient is needed),
+    not on cuda.
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
@@ -142,11 +162,22 @@ def rasterize_splats(
         raise ValueError(f"k_max must be >= 0, got {k_max}")
     if not 0.0 <= t_min < 1.0:
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    if ray_depth is not None:
+        if ray_depth.coefs.shape != (means2d.shape[0], 9):
+            raise ValueError(f"ray_depth.coefs must be [N,9] for the N={means2d.shape[0]} splats, "
+                             f"got {tuple(ray_depth.coefs.shape)}")
+        if backend == "cuda":
+            raise ValueError("sort='per_pixel' has no CUDA kernel yet; use backend='reference' or 'auto'")
+        if backend == "auto":
+            backend = _per_pixel_backend(means2d.device, means2d.dtype,
+                                         (means2d, conics, opacities, colors, depths, alpha, beta, gamma,
+                                          background, reg_values))
     name = resolve_backend(backend, means2d.device, means2d.dtype)
     fn = _load_backend(name)
+    extra = {} if ray_depth is None else {"ray_depth": ray_depth}
     return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
               mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-              reg_depth_scale=reg_depth_scale, t_min=t_min)
+              reg_depth_scale=reg_depth_scale, t_min=t_min, **extra)
 
 
 def rasterize(
@@ -171,6 +202,7 @@ def rasterize(
     eps2d: float = K.EPS2D,
     clamp_sh_colors: bool = True,
     t_min: float = K.T_MIN,
+    sort: str = "global",
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
 
@@ -178,7 +210,12 @@ def rasterize(
     evaluated at ``sh_degree`` (+0.5 and clamped at 0 as 3DGS, unless ``clamp_sh_colors=False``).
     ``extras`` of the output hold the projection (``ids``, ``means2d``, ``radii``), so a
     densification strategy can read the 2D mean gradients (call ``retain_grad`` on ``means2d``).
+    ``sort``: ``"global"`` orders all splats by the view depth of their centres (3DGS);
+    ``"per_pixel"`` orders each pixel's splats by the depth along its ray where the 3D Gaussian's
+    response peaks (StopThePop; ``smgs.raster.ray_depth``; backends as ``rasterize_splats``). The
+    order is not differentiated; the compositing and its gradients are those of the mode.
     """
+    check_sort(sort)
     n = means3d.shape[0]
     for name, t, shape in (("means3d", means3d, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
                            ("opacities", opacities, (n,))):
@@ -209,9 +246,11 @@ def rasterize(
             colors = colors.clamp_min(0.0)
     pick = (lambda t: None if t is None else t[ids])
     means2d = proj.means2d
+    rd = ray_depth(means3d[ids], quats[ids], scales[ids], camera) if sort == "per_pixel" else None
     out = rasterize_splats(means2d, proj.conics, opacities[ids], colors, proj.depths,
                            pick(alpha), pick(beta), pick(gamma), camera.width, camera.height,
                            mode=mode, k_max=k_max, background=background, backend=backend, eq15=eq15,
-                           reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale, t_min=t_min)
+                           reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale, t_min=t_min,
+                           ray_depth=rd)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)
     return out

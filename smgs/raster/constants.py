@@ -63,3 +63,8 @@ PyTorch's CPU exp is ~10x slower below -88 (denormals)."""
 DECAY_ARG_MAX = 1e3
 """γ·|Δd| is capped here: s = exp(-1e3) is exactly 0 in float32 and float64, and the cap keeps
 γ = inf (the GEF-only limit) free of inf·0 in the gradients."""
+
+SORT_WINDOW = 16
+"""sort="per_pixel" on the compiled CPU backend: each pixel re-sorts its splats in a window of this
+many (StopThePop's bounded re-sorting; the reference sorts exactly). tests/test_raster_sort.py
+measures the difference to the exact order on crowded scenes."""

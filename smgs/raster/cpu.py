@@ -26,11 +26,13 @@ import torch
 
 from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension
-from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
+                                     kernel_output)
+from smgs.raster.types import Eq15, RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # The torch glue first; the compositing core's three units build in parallel with it (ninja).
-_SOURCES = ("cpu_kernel.cpp", "cpu_fwd.cpp", "cpu_bwd.cpp", "cpu_bwd_soft.cpp")
+_SOURCES = ("cpu_kernel.cpp", "cpu_fwd.cpp", "cpu_bwd.cpp", "cpu_bwd_soft.cpp", "cpu_pixel.cpp")
 
 _JIT = cpu_extension("smgs_raster_cpu", [_CSRC / s for s in _SOURCES], "renderer backend", [_CSRC])
 is_available = _JIT.is_available
@@ -50,40 +52,58 @@ def isa() -> str:
 
 
 class _RasterizeCPU(torch.autograd.Function):
+    """Inputs in the order of ``rasterize_splats`` (optional ones None), then the settings; the
+    outputs' counters and final transmittance carry no gradient."""
+
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background,
-                reg_values, cfg):
+                reg_values, settings: CompositeSettings):
         ext = extension()
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
-        width, height, use_gef, use_soft, k_max, solved, reg_scale, _ = cfg
+        st = settings
         nthreads = torch.get_num_threads()
         (rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, ids, pk, box, toff, tlist, soff,
          spos) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
-                              opt(background), opt(reg_values), width, height, use_gef, use_soft, k_max,
-                              solved, reg_scale, nthreads, cfg[-1])
+                              opt(background), opt(reg_values), st.width, st.height, st.use_gef, st.use_softmax,
+                              st.k_max, st.solved, st.reg_depth_scale, nthreads, st.t_min)
         ctx.save_for_backward(alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos,
                               opt(background))
-        ctx.cfg = cfg
-        ctx.meta = (means2d.shape[0], colors.shape[1], 0 if reg_values is None else reg_values.shape[1],
-                    alpha is not None, beta is not None, background is not None, nthreads)
+        ctx.settings = st
+        ctx.n_splats = means2d.shape[0]
+        ctx.n_channels = colors.shape[1]
+        ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
+        ctx.nthreads = nthreads   # the backward sums per-tile rows in the forward's order
         ctx.mark_non_differentiable(cnt, pairs, t_final)
         return rgb, alpha_out, depth, reg, cnt, pairs, t_final
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t):
         alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos, bg = ctx.saved_tensors
-        width, height, use_gef, use_soft, k_max, solved, reg_scale, t_min = ctx.cfg
-        n, nch, n_reg, has_alpha, has_soft, has_bg, nthreads = ctx.meta
+        st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
-        g_reg = g_reg.contiguous().float() if n_reg else g_rgb.new_empty(0)
-        gm, gc, go, gcol, gd, gal, gbe, gga, grv = extension().backward(
+        g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
+        grads = extension().backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
-            spos, bg,
-            n, nch, n_reg, width, height, use_gef, use_soft, k_max, solved, reg_scale, nthreads)
-        g_bg = (g_rgb * t_final[..., None]).sum((0, 1)) if has_bg else None   # rgb += T·bg
-        return (gm, gc, go, gcol, gd, gal if has_alpha else None, gbe if has_soft else None,
-                gga if has_soft else None, g_bg, grv if n_reg else None, None)
+            spos, bg, ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax,
+            st.k_max, st.solved, st.reg_depth_scale, ctx.nthreads)
+        return kernel_grads(ctx, grads, g_rgb, t_final)
+
+
+def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth, window: int) -> RenderOutput:
+    """sort="per_pixel" through the re-sorting window (forward only; csrc/cpu_pixel.cpp)."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, _ = args
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in args):
+        raise ValueError("sort='per_pixel' on the cpu backend renders without gradients (forward only); "
+                         "render under torch.no_grad(), or train with backend='reference' (exact order)")
+    empty = means2d.new_empty(0)
+    opt = lambda t: empty if t is None else t  # noqa: E731
+    intr = torch.tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy], dtype=torch.float32)
+    rgb, alpha_out, depth, cnt, _, pairs = extension().forward_pixel(
+        means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(bg),
+        ray_depth.coefs.to(torch.float32).contiguous(), intr, st.width, st.height, st.use_gef, st.use_softmax,
+        st.k_max, st.solved, torch.get_num_threads(), st.t_min, int(window))
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
 
 
 def rasterize_splats_cpu(
@@ -104,29 +124,15 @@ def rasterize_splats_cpu(
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
+    ray_depth: RayDepth | None = None,
+    window: int = K.SORT_WINDOW,
 ) -> RenderOutput:
-    """Composite projected splats on the CPU; see ``smgs.raster.rasterize_splats`` for the arguments.
-    float32 CPU tensors only."""
-    use_gef, use_soft = mode_flags(mode)
-    if eq15 not in ("solved", "printed"):
-        raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
-    for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("colors", colors),
-                    ("depths", depths)):
-        if t.device.type != "cpu" or t.dtype != torch.float32:
-            raise TypeError(f"cpu backend: {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}")
-    if width <= 0 or height <= 0:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
-    f32 = lambda t: None if t is None else t.to(torch.float32).contiguous()  # noqa: E731
-    bg = None if background is None else background.to(torch.float32).reshape(-1).contiguous()
-    if bg is not None and bg.numel() != colors.shape[1]:
-        raise ValueError(f"background must have {colors.shape[1]} channels, got {bg.numel()}")
-    cfg = (int(width), int(height), use_gef, use_soft, int(k_max), eq15 == "solved", float(reg_depth_scale),
-           float(t_min))
-    rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCPU.apply(
-        means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
-        depths.contiguous(), f32(alpha) if use_gef else None, f32(beta) if use_soft else None,
-        f32(gamma) if use_soft else None, bg, f32(reg_values), cfg)
-    stats = RenderStats(n_contrib=cnt.long(), pairs_evaluated=int(pairs.item()),
-                        k_max=int(k_max) if use_soft else 2**31 - 1)
-    return RenderOutput(rgb=rgb, alpha=alpha_out, depth=depth, stats=stats,
-                        reg=reg if reg_values is not None else None)
+    """Composite projected splats on the CPU: float32 CPU tensors, checked by
+    ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
+    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats, forward only."""
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
+    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    if ray_depth is not None:
+        return _per_pixel(st, args, ray_depth, window)
+    rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCPU.apply(*args, st)
+    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs)

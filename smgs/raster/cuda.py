@@ -26,7 +26,9 @@ import torch
 from smgs.raster import constants as K
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
-from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
+                                     kernel_output)
+from smgs.raster.types import Eq15, RenderOutput
 
 log = logging.getLogger(__name__)
 
@@ -90,58 +92,48 @@ def extension(t_min: float = K.T_MIN):
 
 
 class _RasterizeCUDA(torch.autograd.Function):
-    """Same inputs and outputs as ``cpu._RasterizeCPU``; ``cfg`` = (width, height, use_gef,
-    use_softmax, k_max, solved, reg_scale, ext)."""
+    """Same inputs and outputs as ``cpu._RasterizeCPU``, then the loaded extension."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background,
-                reg_values, cfg):
-        width, height, use_gef, use_soft, k_max, solved, reg_scale, ext = cfg
+                reg_values, settings: CompositeSettings, ext):
+        st = settings
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
         rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, pk, ranges, tile_list = ext.forward(
             means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
-            opt(reg_values), width, height, use_gef, use_soft, k_max, solved, reg_scale)
+            opt(reg_values), st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+            st.reg_depth_scale)
         ctx.save_for_backward(alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, opt(background))
-        ctx.cfg = cfg
-        ctx.meta = (means2d.shape[0], colors.shape[1], 0 if reg_values is None else reg_values.shape[1],
-                    alpha is not None, beta is not None, background is not None)
+        ctx.settings = st
+        ctx.ext = ext
+        ctx.n_splats = means2d.shape[0]
+        ctx.n_channels = colors.shape[1]
+        ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
         ctx.mark_non_differentiable(cnt, pairs, t_final)
         return rgb, alpha_out, depth, reg, cnt, pairs, t_final
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t):
         alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg = ctx.saved_tensors
-        width, height, use_gef, use_soft, k_max, solved, reg_scale, ext = ctx.cfg
-        n, nch, n_reg, has_alpha, has_soft, has_bg = ctx.meta
+        st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
-        g_reg = g_reg.contiguous().float() if n_reg else g_rgb.new_empty(0)
-        gm, gc, go, gcol, gd, gal, gbe, gga, grv = ext.backward(
+        g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
+        grads = ctx.ext.backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg,
-            n, nch, n_reg, width, height, use_gef, use_soft, k_max, solved, reg_scale, HEAD_BUDGET_BYTES)
-        g_bg = (g_rgb * t_final[..., None]).sum((0, 1)) if has_bg else None   # rgb += T·bg
-        return (gm, gc, go, gcol, gd, gal if has_alpha else None, gbe if has_soft else None,
-                gga if has_soft else None, g_bg, grv if n_reg else None, None)
+            ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
+            st.solved, st.reg_depth_scale, HEAD_BUDGET_BYTES)
+        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=2)
 
 
 def composite(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
-              k_max, background, eq15, reg_values, reg_depth_scale) -> RenderOutput:
-    """Validation-free core of ``rasterize_splats_cuda`` with the extension passed in (the argument
-    plumbing is tested without a GPU by passing a stand-in extension)."""
-    use_gef, use_soft = mode_flags(mode)
-    f32 = lambda t: None if t is None else t.to(torch.float32).contiguous()  # noqa: E731
-    bg = None if background is None else background.to(device=means2d.device, dtype=torch.float32).reshape(-1)
-    if bg is not None and bg.numel() != colors.shape[1]:
-        raise ValueError(f"background must have {colors.shape[1]} channels, got {bg.numel()}")
-    cfg = (int(width), int(height), use_gef, use_soft, int(k_max), eq15 == "solved", float(reg_depth_scale), ext)
-    rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCUDA.apply(
-        means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
-        depths.contiguous(), f32(alpha) if use_gef else None, f32(beta) if use_soft else None,
-        f32(gamma) if use_soft else None, None if bg is None else bg.contiguous(), f32(reg_values), cfg)
-    stats = RenderStats(n_contrib=cnt.long(), pairs_evaluated=int(pairs.item()),
-                        k_max=int(k_max) if use_soft else 2**31 - 1)
-    return RenderOutput(rgb=rgb, alpha=alpha_out, depth=depth, stats=stats,
-                        reg=reg if reg_values is not None else None)
+              k_max, background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN) -> RenderOutput:
+    """``rasterize_splats_cuda`` with the extension passed in (the argument plumbing is tested
+    without a GPU by passing a stand-in extension). ``t_min`` is already compiled into ``ext``."""
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
+    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCUDA.apply(*args, st, ext)
+    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs)
 
 
 def rasterize_splats_cuda(
@@ -163,23 +155,9 @@ def rasterize_splats_cuda(
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
 ) -> RenderOutput:
-    """Composite projected splats on a CUDA device; see ``smgs.raster.rasterize_splats`` for the
-    arguments. float32 CUDA tensors, all on one device. ``t_min`` (the early-stop transmittance) is
-    compiled into the kernel: a value other than the default costs one more build."""
-    mode_flags(mode)
-    if eq15 not in ("solved", "printed"):
-        raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
-    dev = means2d.device
-    for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("colors", colors),
-                    ("depths", depths)):
-        if t.device.type != "cuda" or t.device != dev or t.dtype != torch.float32:
-            raise TypeError(f"cuda backend: {name} must be a float32 tensor on {dev}, got {t.dtype} on {t.device}")
-    for name, t in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("reg_values", reg_values)):
-        if t is not None and t.device != dev:
-            raise TypeError(f"cuda backend: {name} must be on {dev}, got {t.device}")
-    if width <= 0 or height <= 0:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
-    if not 0.0 <= t_min < 1.0:
-        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    """Composite projected splats on a CUDA device: float32 tensors on one device, checked by
+    ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. ``t_min``
+    (the early-stop transmittance) is compiled into the kernel: a value other than the default
+    costs one more build."""
     return composite(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                     mode, k_max, background, eq15, reg_values, reg_depth_scale)
+                     mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min)

@@ -31,10 +31,12 @@ as Algorithm 1 does for c_past) and divided by alpha at the end.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from smgs.raster import constants as K
-from smgs.raster.types import Eq15, RenderOutput, RenderStats, mode_flags
+from smgs.raster.types import Eq15, RayDepth, RenderOutput, RenderStats, mode_flags
 
 
 def _sorted_order(depths: torch.Tensor) -> torch.Tensor:
@@ -51,13 +53,19 @@ def _gef_power(q: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
 
 
 def conic_factor(conic: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(½a, b/a, ½(c - b²/a)) of one conic (a, b, c), formed in float64 (the products of float32
-    inputs are exact there) and rounded to the conic's dtype; (0, b, ½c) where a = 0. The compiled
-    backends store the same factor (splat_factor in splat_math.h). No gradient flows through it."""
-    a, b, c = conic.detach().double().unbind()
-    if a == 0:
-        return tuple(v.to(conic.dtype) for v in (a, b, 0.5 * c))
-    return tuple(v.to(conic.dtype) for v in (0.5 * a, b / a, 0.5 * ((a * c - b * b) / a)))
+    """(½a, b/a, ½(c - b²/a)) of one conic (a, b, c) [3], or of a conic per pixel [P, 3], formed in
+    float64 (the products of float32 inputs are exact there) and rounded to the conic's dtype;
+    (0, b, ½c) where a = 0. The compiled backends store the same factor (splat_factor in
+    splat_math.h). No gradient flows through it."""
+    a, b, c = conic.detach().double().unbind(-1)
+    if conic.dim() == 1:
+        if a == 0:
+            return tuple(v.to(conic.dtype) for v in (a, b, 0.5 * c))
+        return tuple(v.to(conic.dtype) for v in (0.5 * a, b / a, 0.5 * ((a * c - b * b) / a)))
+    zero = a == 0
+    a1 = torch.where(zero, torch.ones_like(a), a)   # both branches finite
+    return tuple(v.to(conic.dtype) for v in (torch.where(zero, a, 0.5 * a), torch.where(zero, b, b / a1),
+                                             0.5 * torch.where(zero, c, (a * c - b * b) / a1)))
 
 
 def quadratic_form(dx: torch.Tensor, dy: torch.Tensor, conic: torch.Tensor) -> torch.Tensor:
@@ -65,18 +73,35 @@ def quadratic_form(dx: torch.Tensor, dy: torch.Tensor, conic: torch.Tensor) -> t
     w = dx + (b/a)·dy: summed as written, the terms of an elongated splat cancel (an absolute error
     up to ~0.1 in float32 at condition number 1e8); here both terms are >= 0 for a positive-definite
     conic. The conic's gradient is the closed form (½dx², dx·dy, ½dy²), attached by a term that is
-    exactly zero in value, so autograd never differentiates the division by a."""
+    exactly zero in value, so autograd never differentiates the division by a. ``conic`` is one
+    conic [3] or one per pixel [P, 3] (per-pixel order)."""
     ha, r, hs = conic_factor(conic)
-    if ha != 0:
+    if conic.dim() == 1 and ha != 0:
         w = dx + r * dy
         q = ha * (w * w) + hs * (dy * dy)
-    else:
+    elif conic.dim() == 1:
         q = r * (dx * dy) + hs * (dy * dy)
+    else:
+        w = dx + r * dy
+        q = torch.where(ha != 0, ha * (w * w), r * (dx * dy)) + hs * (dy * dy)
     if conic.requires_grad:
         dxd, dyd = dx.detach(), dy.detach()
-        g = 0.5 * (conic[0] * dxd * dxd + conic[2] * dyd * dyd) + conic[1] * dxd * dyd
+        g = 0.5 * (conic[..., 0] * dxd * dxd + conic[..., 2] * dyd * dyd) + conic[..., 1] * dxd * dyd
         q = q + (g - g.detach())
     return q
+
+
+def peak_depth(coefs: torch.Tensor, u: torch.Tensor, v: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
+    """Camera-space depth where each splat's 3D response peaks along the ray d = (u, v, 1):
+    t* = b·d / dᵀQd (``smgs.raster.ray_depth``; the twin of peak_depth in splat_math.h, which the
+    CPU backend's re-sorting window uses). coefs
+    [N, 9], u and v [P], fallback [N] (the centre depths, used where dᵀQd vanishes); returns [P, N]."""
+    qxx, qxy, qxz, qyy, qyz, qzz, bx, by, bz = coefs.double().unbind(-1)
+    u, v = u.double()[:, None], v.double()[:, None]
+    num = bx * u + by * v + bz
+    den = qxx * u * u + qyy * v * v + qzz + 2 * (qxy * u * v + qxz * u + qyz * v)
+    ok = den > 1e-12 * (u * u + v * v + 1)
+    return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), fallback.detach().double())
 
 
 def softmax_step(T, A, C, d_past, p_past, a, p, d, c, beta, gamma, eq15: str):
@@ -138,6 +163,62 @@ def vanilla_step(T, A, C, d_past, p_past, a, p, d, c, track_means: bool):
     return T * (1 - a), U, C, d_past, p_past
 
 
+@dataclass
+class _Splat:
+    """One compositing step's splat: scalars (global order) or one value per pixel [P] (per-pixel
+    order, rows gathered by each pixel's own index). ``col`` [1 or P, C+1] has the depth last."""
+
+    mx: torch.Tensor
+    my: torch.Tensor
+    conic: torch.Tensor
+    o: torch.Tensor
+    col: torch.Tensor
+    d: torch.Tensor
+    al: torch.Tensor | None
+    be: torch.Tensor | None
+    ga: torch.Tensor | None
+    rv: torch.Tensor | None
+
+
+def _splat(k, means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values) -> _Splat:
+    """The splat of index ``k``: an int, or a LongTensor [P] of one index per pixel."""
+    pick = lambda t: None if t is None else t[k]  # noqa: E731
+    col = torch.cat([colors[k], depths[k].unsqueeze(-1)], -1).reshape(-1, colors.shape[1] + 1)
+    rv = None if reg_values is None else reg_values[k].reshape(-1, reg_values.shape[1])
+    return _Splat(means2d[k, 0], means2d[k, 1], conics[k], opacities[k], col, depths[k], pick(alpha), pick(beta),
+                  pick(gamma), rv)
+
+
+def _pixel_order(means2d, conics, depths, ray_depth, px, py) -> torch.Tensor:
+    """[P, L] splat indices per pixel, nearest peak depth first, the splats whose 3σ ellipse misses
+    the pixel after all others and cut where no pixel has any left. Peak depths are compared as
+    float32 (as a float32 kernel keeps them), and equal ones keep the global order (StopThePop
+    re-sorts the globally sorted list): coplanar splats, whose peak depths differ only by rounding,
+    are taken in the global order. Formed in chunks of pixels (at most ~2^22 pixel-splat pairs)."""
+    n = means2d.shape[0]
+    g = _sorted_order(depths)
+    with torch.no_grad():
+        ha, r, hs = (x.double()[g] for x in conic_factor(conics))                  # [N] each
+        mx, my, coefs = means2d[g, 0].double(), means2d[g, 1].double(), ray_depth.coefs[g]
+        fallback = depths[g]
+        orders, counts = [], []
+        step = max(1, (1 << 22) // max(n, 1))
+        for lo in range(0, px.shape[0], step):
+            cx, cy = px[lo:lo + step], py[lo:lo + step]
+            t = peak_depth(coefs, (cx - ray_depth.cx) / ray_depth.fx, (cy - ray_depth.cy) / ray_depth.fy, fallback)
+            dx = cx.double()[:, None] - mx
+            dy = cy.double()[:, None] - my
+            w = dx + r * dy
+            q = torch.where(ha != 0, ha * w * w, r * dx * dy) + hs * dy * dy
+            # a margin past 3σ: the float32 q of a splat just inside must never be cut
+            inside = q <= -K.P_MIN * (1 + 1e-4) + 1e-6
+            t = torch.where(inside, t.float(), torch.full_like(t, torch.inf, dtype=torch.float32))
+            orders.append(g[torch.sort(t, dim=1, stable=True).indices])
+            counts.append(inside.sum(1))
+        width = int(torch.cat(counts).max()) if counts else 0
+        return torch.cat([o[:, :width] for o in orders])
+
+
 def rasterize_splats_reference(
     means2d: torch.Tensor,
     conics: torch.Tensor,
@@ -156,8 +237,11 @@ def rasterize_splats_reference(
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
+    ray_depth: RayDepth | None = None,
 ) -> RenderOutput:
-    """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments."""
+    """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments. With
+    ``ray_depth`` each pixel takes its splats in its own exact order (``smgs.raster.ray_depth``),
+    else all in the order of ``depths``."""
     use_gef, use_softmax = mode_flags(mode)
     device, dtype = means2d.device, means2d.dtype
     n_ch = colors.shape[1]
@@ -181,13 +265,19 @@ def rasterize_splats_reference(
     one = torch.ones((), device=device, dtype=dtype)
     half = 0.5 * one
 
-    for k in _sorted_order(depths).tolist():
-        dx = px - means2d[k, 0]
-        dy = py - means2d[k, 1]
-        q = torch.clamp(quadratic_form(dx, dy, conics[k]), min=0.0)  # -p >= 0
-        e = _gef_power(q, alpha[k]) if use_gef else q
+    inputs = (means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values)
+    if ray_depth is None:
+        steps = (_splat(k, *inputs) for k in _sorted_order(depths).tolist())
+    else:
+        order = _pixel_order(means2d, conics, depths, ray_depth, px, py)
+        steps = (_splat(order[:, j], *inputs) for j in range(order.shape[1]))
+    for sp in steps:
+        dx = px - sp.mx
+        dy = py - sp.my
+        q = torch.clamp(quadratic_form(dx, dy, sp.conic), min=0.0)  # -p >= 0
+        e = _gef_power(q, sp.al) if use_gef else q
         kern = torch.exp(-torch.clamp(e, max=-K.EXP_ARG_MIN))
-        a = torch.clamp(opacities[k] * kern, max=K.ALPHA_MAX)
+        a = torch.clamp(sp.o * kern, max=K.ALPHA_MAX)
         reach = (~done) & (q <= -K.P_MIN) & (a >= K.ALPHA_MIN)
         if not bool(reach.any()):
             continue
@@ -197,7 +287,6 @@ def rasterize_splats_reference(
         done = done | stop
         reach = reach & ~stop
         p = -q
-        col = torch.cat([colors[k], depths[k].reshape(1)])[None, :]
         in_head = reach & (count < k_max)
         soft = in_head & (A > 0) if use_softmax else torch.zeros_like(reach)
         van = reach & ~soft
@@ -205,8 +294,7 @@ def rasterize_splats_reference(
         new_state = [T, A, C, d_past, p_past]
         if bool(van.any()):
             # a = ½ where the step does not apply keeps U = A + a·T > 0 (no NaN gradients).
-            vs = vanilla_step(T, A, C, d_past, p_past, torch.where(van, a, half), p, depths[k], col,
-                              track)
+            vs = vanilla_step(T, A, C, d_past, p_past, torch.where(van, a, half), p, sp.d, sp.col, track)
             new_state = [torch.where(van[:, None] if v.dim() == 2 else van, v, o)
                          for v, o in zip(vs, new_state)]
         if bool(soft.any()):
@@ -214,19 +302,17 @@ def rasterize_splats_reference(
             A_s = torch.where(soft, A, half)
             a_s = torch.where(soft, a, half)
             T_s = torch.where(soft, T, half)
-            ss = softmax_step(T_s, A_s, C, d_past, p_past, a_s, p, depths[k], col, beta[k],
-                              gamma[k], eq15)
+            ss = softmax_step(T_s, A_s, C, d_past, p_past, a_s, p, sp.d, sp.col, sp.be, sp.ga, eq15)
             new_state = [torch.where(soft[:, None] if v.dim() == 2 else soft, v, o)
                          for v, o in zip(ss, new_state)]
         T, A, C, d_past, p_past = new_state
 
         if reg is not None:
             first = in_head & (count == 0)
-            d_front = torch.where(first, depths[k].detach().expand(P), d_front)
-            w = 1.0 / (1.0 + (depths[k].detach() - d_front) / reg_depth_scale)
+            d_front = torch.where(first, sp.d.detach().expand(P), d_front)
+            w = 1.0 / (1.0 + (sp.d.detach() - d_front) / reg_depth_scale)
             w = torch.where(in_head, w, torch.zeros_like(w))
-            v = reg_values[k][None, :]
-            reg = reg + torch.cat([w[:, None], w[:, None] * v, w[:, None] * v * v], dim=1)
+            reg = reg + torch.cat([w[:, None], w[:, None] * sp.rv, w[:, None] * sp.rv * sp.rv], dim=1)
         count = count + reach.long()
 
     rgb = C[:, :n_ch]

@@ -63,3 +63,19 @@ class RenderOutput:
     stats: RenderStats
     reg: torch.Tensor | None = None
     extras: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RayDepth:
+    """What a backend needs to order each pixel's splats by the peak depth along its ray
+    (``smgs.raster.ray_depth``).
+
+    coefs [M, 9] per projected splat, float64: (Qxx, Qxy, Qxz, Qyy, Qyz, Qzz, bx, by, bz) in camera
+    coordinates; fx, fy, cx, cy: the camera's intrinsics (pixel centres at +0.5).
+    """
+
+    coefs: torch.Tensor
+    fx: float
+    fy: float
+    cx: float
+    cy: float

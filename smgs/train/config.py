@@ -232,6 +232,7 @@ class TrainConfig:
     eq15: Literal["solved", "printed"] = "solved"
     backend: str = "auto"
     t_min: float = K.T_MIN
+    sort: str = "global"    # or "per_pixel" (StopThePop's order; smgs.raster.rasterize)
     sh_degree_interval: int = 1000
     random_background: bool = False
     check_finite_every: int = 1

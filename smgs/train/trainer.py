@@ -21,6 +21,7 @@ from smgs.device import check_backend, generator_state, resolve_device, restore_
 from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
 from smgs.raster.checks import NonFiniteInputError
+from smgs.raster.ray_depth import check_sort
 from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
@@ -75,6 +76,7 @@ class Trainer:
     def __init__(self, scene: Scene, cfg: TrainConfig, gaussians: Gaussians | None = None, *,
                  device: torch.device | str) -> None:
         mode_flags(cfg.mode)  # validates the mode
+        check_sort(cfg.sort)
         self.device = resolve_device(device)
         check_backend(cfg.backend, self.device)
         keep_freed_buffers()  # per-step image temporaries reuse heap pages (see smgs.train.allocator)
@@ -178,7 +180,7 @@ class Trainer:
             beta=g.beta if self.use_softmax else None,
             gamma=g.gamma if self.use_softmax else None,
             mode=self.cfg.mode, k_max=self.cfg.k_max, sh_degree=deg_arg, background=background,
-            backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min,
+            backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
             clamp_sh_colors=self.cfg.gaussians.clamp_colors)
 

@@ -272,6 +272,52 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   return {rgb, a, dep, reg, cnt, Tf, last, tp, P.ids, P.pk, P.box, P.toff, P.tlist, P.soff, P.spos};
 }
 
+// sort="per_pixel", forward only (cpu_pixel.cpp). coefs [N, 9] (smgs/raster/ray_depth.py), intr
+// (fx, fy, cx, cy). Returns [rgb, alpha, depth, n_contrib, T_final, pairs].
+std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
+                                      at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
+                                      at::Tensor bg, at::Tensor coefs, at::Tensor intr, int64_t W, int64_t H,
+                                      bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
+                                      double t_min, int64_t window) {
+  check_f32(means2d, "means2d");
+  check_f32(conics, "conics");
+  check_f32(opac, "opacities");
+  check_f32(colors, "colors");
+  check_f32(depths, "depths");
+  check_f32(coefs, "coefs");
+  check_f32(intr, "intrinsics");
+  const int64_t N = means2d.size(0);
+  TORCH_CHECK(N < (int64_t(1) << 24), "the cpu backend handles fewer than 2^24 splats");
+  TORCH_CHECK(coefs.dim() == 2 && coefs.size(0) == N && coefs.size(1) == 9, "coefs must be [N, 9]");
+  TORCH_CHECK(intr.numel() == 4, "intrinsics must be (fx, fy, cx, cy)");
+  TORCH_CHECK(window >= 1, "window must be >= 1");
+  if (gef) check_f32(alpha, "alpha");
+  if (soft) {
+    check_f32(beta, "beta");
+    check_f32(gamma, "gamma");
+  }
+  if (bg.numel()) check_f32(bg, "background");
+  const int nch = int(colors.size(1));
+  const at::Tensor none = at::empty({0}, at::TensorOptions().dtype(at::kFloat));
+  Prepared P = prepare(means2d, conics, opac, colors, depths, alpha, beta, gamma, none, int(W), int(H), int(nthreads));
+  Scene sc = make_scene(P.pk, P.box, P.toff, P.tlist, bg, int(W), int(H), nch, 0, kmax, solved, 1.0, int(nthreads),
+                        t_min);
+  // the coefficients in pk row (depth) order
+  const int64_t M = P.ids.numel();
+  std::vector<float> cs(size_t(M) * 9);
+  const int32_t* ids = P.ids.data_ptr<int32_t>();
+  const float* cf = coefs.data_ptr<float>();
+  for (int64_t j = 0; j < M; ++j) std::memcpy(&cs[size_t(j) * 9], cf + size_t(ids[j]) * 9, sizeof(float) * 9);
+  auto f32 = at::TensorOptions().dtype(at::kFloat);
+  auto i32 = at::TensorOptions().dtype(at::kInt);
+  at::Tensor rgb = at::empty({H, W, nch}, f32), a = at::empty({H, W}, f32), dep = at::empty({H, W}, f32),
+             Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32);
+  FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(), nullptr,
+           nullptr, cnt.data_ptr<int32_t>()};
+  int64_t pairs = forward_pixel_tiles(sc, o, cs.data(), intr.data_ptr<float>(), int(window), gef, soft);
+  return {rgb, a, dep, cnt, Tf, at::full({1}, pairs, at::TensorOptions().dtype(at::kLong))};
+}
+
 // Returns dL/d[means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values] over the N
 // input splats (zeros for splats that reach no pixel).
 std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth,
@@ -348,6 +394,7 @@ std::string isa() { return simd_isa(); }
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &smgs::forward, "smgs CPU splat compositing, forward");
   m.def("backward", &smgs::backward, "smgs CPU splat compositing, backward");
+  m.def("forward_pixel", &smgs::forward_pixel, "smgs CPU splat compositing in per-pixel order, forward only");
   m.def("constants", &smgs::constants, "numeric conventions as compiled");
   m.def("isa", &smgs::isa, "the SIMD path compiled in");
 }

@@ -128,6 +128,16 @@ SMGS_HD inline Absorb<V> splat_absorb(V q, float o, float alpha) {
   return s;
 }
 
+// Depth along the pixel's ray d = (u, v, 1) (camera space) where the splat's 3D response peaks
+// (sort="per_pixel", StopThePop): t* = b·d / dᵀQd with c = (Qxx, Qxy, Qxz, Qyy, Qyz, Qzz, bx, by, bz)
+// from smgs/raster/ray_depth.py (Q the splat's inverse covariance up to scale, b = Qμ); `fallback`
+// (the centre depth) where dᵀQd vanishes. The twin of peak_depth in smgs/raster/reference.py.
+SMGS_HD inline float peak_depth(float u, float v, const float* c, float fallback) {
+  const float num = c[6] * u + c[7] * v + c[8];
+  const float den = c[0] * u * u + c[3] * v * v + c[5] + 2.f * (c[1] * u * v + c[2] * u + c[4] * v);
+  return den > 1e-12f * (u * u + v * v + 1.f) ? num / den : fallback;
+}
+
 // Adjoint of splat_quad + splat_absorb: from dL/da and dL/dp (p = -q) to the splat's parameters.
 template <class V>
 struct KernGrad {

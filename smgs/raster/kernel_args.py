@@ -1,0 +1,64 @@
+"""What the compiled backends (cpu, cuda) share around their kernels: the settings kept on the
+autograd context, the inputs in the kernels' form, the gradients handed back and the output built.
+The inputs were checked by ``smgs.raster.api.rasterize_splats`` before they arrive here."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from smgs.raster.types import RenderOutput, RenderStats, mode_flags
+
+# Position of each tensor input of the compiled autograd Functions (ctx.needs_input_grad order).
+INPUTS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma", "background",
+          "reg_values")
+
+
+@dataclass(frozen=True)
+class CompositeSettings:
+    """The non-tensor settings of one compositing call, kept whole on the autograd context."""
+
+    width: int
+    height: int
+    use_gef: bool
+    use_softmax: bool
+    k_max: int
+    solved: bool
+    reg_depth_scale: float
+    t_min: float
+
+
+def composite_settings(width: int, height: int, mode: str, k_max: int, eq15: str, reg_depth_scale: float,
+                       t_min: float) -> CompositeSettings:
+    use_gef, use_softmax = mode_flags(mode)
+    return CompositeSettings(int(width), int(height), use_gef, use_softmax, int(k_max), eq15 == "solved",
+                             float(reg_depth_scale), float(t_min))
+
+
+def kernel_inputs(st: CompositeSettings, means2d, conics, opacities, colors, depths, alpha, beta, gamma,
+                  background, reg_values) -> tuple[torch.Tensor | None, ...]:
+    """The ten tensor inputs as the kernels read them: contiguous float32, None where the mode
+    ignores them, the background flat."""
+    f32 = lambda t: None if t is None else t.to(torch.float32).contiguous()  # noqa: E731
+    bg = None if background is None else background.to(device=means2d.device, dtype=torch.float32).reshape(-1)
+    return (means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
+            depths.contiguous(), f32(alpha) if st.use_gef else None, f32(beta) if st.use_softmax else None,
+            f32(gamma) if st.use_softmax else None, None if bg is None else bg.contiguous(), f32(reg_values))
+
+
+def kernel_grads(ctx, grads, g_rgb: torch.Tensor, t_final: torch.Tensor, n_settings: int = 1) -> tuple:
+    """The backward's return: the kernel's nine gradients (means2d ... gamma, reg_values) with the
+    background's added, None for every input that needs none, then None for the settings."""
+    gm, gc, go, gcol, gd, gal, gbe, gga, grv = grads
+    g_bg = (g_rgb * t_final[..., None]).sum((0, 1)) if ctx.needs_input_grad[8] else None   # rgb += T·bg
+    out = (gm, gc, go, gcol, gd, gal, gbe, gga, g_bg, grv)
+    return tuple(g if need else None for g, need in zip(out, ctx.needs_input_grad)) + (None,) * n_settings
+
+
+def kernel_output(st: CompositeSettings, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
+                  reg: torch.Tensor | None, n_contrib: torch.Tensor, pairs: torch.Tensor) -> RenderOutput:
+    """The RenderOutput of a kernel's outputs (``reg`` None where no values were regularised)."""
+    stats = RenderStats(n_contrib=n_contrib.long(), pairs_evaluated=int(pairs.item()),
+                        k_max=st.k_max if st.use_softmax else 2**31 - 1)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats, reg=reg)
