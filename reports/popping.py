@@ -24,7 +24,7 @@ from smgs.io.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.consistency.popping import POP_METHODS, PopResult, flip_scenes, orbit_path, popping_table
 from reports.plots import Plot
 from reports.runs import Value
-from reports.table import Column, Row, Section, Table, fixed
+from reports.table_model import Column, Row, Section, Table, fixed
 
 STRIP_SCENES = ("crossing_30", "coplanar_pair")
 STRIP_FRAMES = (-1, 0, 1, 2)   # frames around the flip pair (k, k+1)
