@@ -17,12 +17,12 @@ def _gaussians(cfg=None, extent=4.0, n=5):
 
 def test_default_activations_and_initial_values():
     g = _gaussians(extent=4.0)
-    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 20; γ = 1 per splat size: γ_world = 1/σ_i.
+    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 20; γ = 0.3 per splat size: γ_world = 0.3/σ_i.
     torch.testing.assert_close(g.alpha, torch.ones(5))
     torch.testing.assert_close(g.beta, torch.full((5,), 20.0))
-    torch.testing.assert_close(g.gamma, 1.0 / g.scales.mean(1))
-    torch.testing.assert_close(g.gamma_rel, 4.0 / g.scales.mean(1))  # stored relative to the extent
-    g = _gaussians(GaussianConfig(gamma_unit="extent"), extent=4.0)
+    torch.testing.assert_close(g.gamma, 0.3 / g.scales.mean(1))
+    torch.testing.assert_close(g.gamma_rel, 1.2 / g.scales.mean(1))  # stored relative to the extent
+    g = _gaussians(GaussianConfig(gamma=ParamInit(1.0), gamma_unit="extent"), extent=4.0)
     torch.testing.assert_close(g.gamma_rel, torch.ones(5))
     torch.testing.assert_close(g.gamma, torch.full((5,), 0.25))     # γ_world = γ / extent
     torch.testing.assert_close(g.opacities, torch.full((5,), 0.1))
@@ -56,7 +56,13 @@ def test_gamma_splat_unit_follows_the_splat_size():
     with pytest.raises(ValueError, match="gamma_unit"):
         Gaussians.from_points(torch.zeros(1, 3), torch.rand(1, 3), GaussianConfig(gamma_unit="x"), 1.0,
                               sh_degree=0, device="cpu")
-    assert pattern_config("softmax_gs", 4).gaussians.gamma_unit == "extent"   # Table 1 unchanged
+    pg = pattern_config("softmax_gs", 4).gaussians          # Table 1 unchanged: γ_rel = 1
+    assert (pg.gamma_unit, pg.gamma.init) == ("extent", 1.0)
+    import yaml
+    from pathlib import Path
+    ds = yaml.safe_load((Path(__file__).parents[1] / "configs/dataset/patterns.yaml").read_text())
+    pg = from_dict(GaussianConfig, ds["train"]["gaussians"])  # the runner's Table 1 path too
+    assert (pg.gamma_unit, pg.gamma.init) == ("extent", 1.0)
 
 
 def test_softplus_activation_and_colour_init():
