@@ -18,9 +18,12 @@ def _gaussians(cfg=None, extent=4.0, n=5):
 
 def test_default_activations_and_initial_values():
     g = _gaussians(extent=4.0)
-    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 20; γ = 1 relative to the extent.
+    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 20; γ = 0.3 per splat size: γ_world = 0.3/σ_i.
     torch.testing.assert_close(g.alpha, torch.ones(5))
     torch.testing.assert_close(g.beta, torch.full((5,), 20.0))
+    torch.testing.assert_close(g.gamma, 0.3 / g.scales.mean(1))
+    torch.testing.assert_close(g.gamma_rel, 1.2 / g.scales.mean(1))  # stored relative to the extent
+    g = _gaussians(GaussianConfig(gamma=ParamInit(1.0), gamma_unit="extent"), extent=4.0)
     torch.testing.assert_close(g.gamma_rel, torch.ones(5))
     torch.testing.assert_close(g.gamma, torch.full((5,), 0.25))     # γ_world = γ / extent
     torch.testing.assert_close(g.opacities, torch.full((5,), 0.1))
@@ -33,10 +36,34 @@ def test_default_activations_and_initial_values():
 
 def test_gamma_is_scale_aware():
     """Scaling a scene (positions and extent) by k leaves γ·|Δd| unchanged."""
-    for k in (0.5, 3.0):
-        g1, gk = _gaussians(extent=2.0), _gaussians(extent=2.0 * k)
-        dd = 0.3
-        torch.testing.assert_close(g1.gamma * dd, gk.gamma * (dd * k))
+    pts, cols = torch.randn(6, 3), torch.rand(6, 3)
+    for unit in ("splat", "extent"):
+        cfg = GaussianConfig(gamma_unit=unit)
+        for k in (0.5, 3.0):
+            g1 = Gaussians.from_points(pts, cols, cfg, 2.0, sh_degree=0, device="cpu")
+            gk = Gaussians.from_points(pts * k, cols, cfg, 2.0 * k, sh_degree=0, device="cpu")
+            dd = 0.3
+            torch.testing.assert_close(g1.gamma * dd, gk.gamma * (dd * k))
+
+
+def test_gamma_splat_unit_follows_the_splat_size():
+    """Decay length = initial splat size / gamma.init, for each Gaussian; softplus inverts too."""
+    scales = torch.tensor([[0.1] * 3, [0.4] * 3])
+    for act in ("exp", "softplus"):
+        cfg = GaussianConfig(gamma=ParamInit(2.0, act))
+        g = Gaussians.from_points(torch.zeros(2, 3), torch.rand(2, 3), cfg, 5.0, sh_degree=0,
+                                  scales=scales, device="cpu")
+        torch.testing.assert_close(g.gamma, torch.tensor([20.0, 5.0]))
+    with pytest.raises(ValueError, match="gamma_unit"):
+        Gaussians.from_points(torch.zeros(1, 3), torch.rand(1, 3), GaussianConfig(gamma_unit="x"), 1.0,
+                              sh_degree=0, device="cpu")
+    pg = pattern_config("softmax_gs", 4).gaussians          # Table 1 unchanged: γ_rel = 1
+    assert (pg.gamma_unit, pg.gamma.init) == ("extent", 1.0)
+    import yaml
+    from pathlib import Path
+    ds = yaml.safe_load((Path(__file__).parents[1] / "configs/dataset/patterns.yaml").read_text())
+    pg = from_dict(GaussianConfig, ds["train"]["gaussians"])  # the runner's Table 1 path too
+    assert (pg.gamma_unit, pg.gamma.init) == ("extent", 1.0)
 
 
 def test_softplus_activation_and_colour_init():

@@ -46,8 +46,16 @@ class GaussianConfig:
       and ends too weak (20-21 dB on circle4); from 1000 it locks in a poor partition (18 dB);
       from 20 Softmax-GS reaches ~28 dB (shared/research/findings.md).
     * γ (depth decay) is stored relative to the scene: the renderer receives
-      γ_world = γ / extent, so s = exp(-γ·|Δd| / extent) and the decay length is extent/γ whatever
-      the scene's units. Init 1 (decay length = one scene extent; on the 2D patterns extent is 1).
+      γ_world = γ / extent, so s = exp(-γ·|Δd| / extent) whatever the scene's units.
+      ``gamma_unit`` says what its initial value is measured against. "splat" (default): each
+      Gaussian starts at γ_world = gamma.init / σ_i, σ_i its initial size (the kNN scale): the
+      paper's Fig. 3 has two overlapping Gaussians' competition fade over a few splat sizes.
+      Init 0.3 (decay length 3.3 splat sizes), chosen by measurement among 0.1, 0.3 and 1 (README
+      "Softmax-GS on real scenes: γ's initial value"). "extent": γ_world = gamma.init / extent for
+      all; with init 1 (the earlier default) the decay length is one scene extent, the front and
+      back of an object compete and the back shows through as speckle, and γ's rate (4e-4 on
+      log γ) cannot undo that in a 3000-step run. The 2D patterns keep "extent" with init 1
+      (extent 1, every splat at one depth; Table 1 was measured so).
 
     ``init``: "auto" takes SfM points if the scene has them, else the 2D-pattern layout for a flat
     scene, else ``n_random`` random points in a cube of side ``random_extent`` × extent (3DGS's
@@ -56,7 +64,8 @@ class GaussianConfig:
 
     alpha: ParamInit = field(default_factory=lambda: ParamInit(1.0))
     beta: ParamInit = field(default_factory=lambda: ParamInit(20.0))
-    gamma: ParamInit = field(default_factory=lambda: ParamInit(1.0))
+    gamma: ParamInit = field(default_factory=lambda: ParamInit(0.3))
+    gamma_unit: Literal["splat", "extent"] = "splat"
     init: Literal["auto", "sfm", "flat", "random"] = "auto"
     init_opacity: float = 0.1            # 3DGS inverse_sigmoid(0.1)
     max_sh_degree: int = 3               # flat scenes use 0 whatever this says
@@ -249,7 +258,8 @@ def pattern_config(mode: str, cap: int, steps: int = 10_000, seed: int = 0) -> T
     findings.md), SH degree 0."""
     return TrainConfig(
         mode=mode, steps=steps, seed=seed,
-        gaussians=GaussianConfig(init="flat", max_sh_degree=0, clamp_colors=False),
+        gaussians=GaussianConfig(init="flat", max_sh_degree=0, clamp_colors=False,
+                                 gamma=ParamInit(1.0), gamma_unit="extent"),
         optim=hparams("3dgs2023+softmaxgs_patterns"),
         densify=densify_config("cap", cap=cap, reset_every=None, refine_stop=steps),
     )

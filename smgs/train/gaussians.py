@@ -39,6 +39,24 @@ def _inverse(value: float, kind: str) -> float:
     raise ValueError(f"unknown activation {kind!r}; expected 'exp' or 'softplus'")
 
 
+def _gamma_raw(cfg: GaussianConfig, extent: float, scales: torch.Tensor) -> torch.Tensor:
+    """Raw γ (stored relative to ``extent``) of Gaussians with initial ``scales`` [N, 3]:
+    γ_rel = init, or init·extent/σ_i with σ_i the mean initial scale (``gamma_unit="splat"``)."""
+    if cfg.gamma_unit not in ("splat", "extent"):
+        raise ValueError(f"unknown gamma_unit {cfg.gamma_unit!r}; expected 'splat' or 'extent'")
+    n = scales.shape[0]
+    base = _inverse(cfg.gamma.init, cfg.gamma.activation)   # also validates init > 0
+    if cfg.gamma_unit == "extent":
+        return torch.full((n,), base, dtype=torch.float32, device=scales.device)
+    sigma = scales.double().mean(1)
+    if not bool((sigma > 0).all()) or not bool(torch.isfinite(sigma).all()):
+        raise ValueError("gamma_unit='splat' needs positive finite initial scales; "
+                         "use gamma_unit='extent' for Gaussians without a size")
+    value = cfg.gamma.init * float(extent) / sigma
+    raw = value.log() if cfg.gamma.activation == "exp" else value + torch.log(-torch.expm1(-value))
+    return raw.float()
+
+
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
     return torch.log(x / (1 - x))
 
@@ -103,7 +121,7 @@ class Gaussians:
             "shN": full((n, k - 1, 3), 0.0),
             "alpha": full((n,), _inverse(cfg.alpha.init, cfg.alpha.activation)),
             "beta": full((n,), _inverse(cfg.beta.init, cfg.beta.activation)),
-            "gamma": full((n,), _inverse(cfg.gamma.init, cfg.gamma.activation)),
+            "gamma": _gamma_raw(cfg, extent, scales.to(device=device, dtype=torch.float32)),
         }
         return cls({name: t.contiguous().requires_grad_(True) for name, t in p.items()}, cfg, extent,
                    sh_degree)
