@@ -261,17 +261,17 @@ def test_the_window_of_16_against_the_exact_sort_on_a_crowded_scene():
     assert float((err_win > 1 / 255).float().mean()) < 0.5 * float((err_glob > 1 / 255).float().mean())
 
 
-def test_the_cpu_window_refuses_gradients_and_auto_picks_by_grad_mode():
+def test_the_cpu_window_refuses_softmax_gradients_and_auto_picks_by_mode_and_grad():
     from smgs.raster import cpu
 
     if not cpu.is_available():
         pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
     sc = {k: t.clone().requires_grad_(True) for k, t in _scene(torch.float32).items()}
-    with pytest.raises(ValueError, match="without gradients"):
-        rasterize(**sc, camera=_camera(), mode="3dgs", backend="cpu", sort="per_pixel")
-    out = rasterize(**sc, camera=_camera(), mode="3dgs", backend="auto", sort="per_pixel")   # the reference
+    with pytest.raises(ValueError, match="no backward for the softmax modes"):
+        rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="cpu", sort="per_pixel")
+    out = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="auto", sort="per_pixel")   # the reference
     out.rgb.sum().backward()
-    assert sc["opacities"].grad.abs().sum() > 0
+    assert sc["beta"].grad.abs().sum() > 0
     with torch.no_grad():
-        fast = rasterize(**sc, camera=_camera(), mode="3dgs", backend="auto", sort="per_pixel")
+        fast = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="auto", sort="per_pixel")
     torch.testing.assert_close(fast.rgb, out.rgb.detach(), rtol=0, atol=2e-5)

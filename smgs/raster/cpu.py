@@ -90,19 +90,59 @@ class _RasterizeCPU(torch.autograd.Function):
         return kernel_grads(ctx, grads, g_rgb, t_final)
 
 
+class _RasterizePixelCPU(torch.autograd.Function):
+    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp): inputs as
+    ``_RasterizeCPU`` without reg_values, then the coefficients and intrinsics of the peak depths
+    and the settings. The backward recomputes each pixel's windowed order (the order carries no
+    gradient) and takes the modes without softmax."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, coefs, intr,
+                settings: CompositeSettings, window: int):
+        empty = means2d.new_empty(0)
+        opt = lambda t: empty if t is None else t  # noqa: E731
+        st = settings
+        nthreads = torch.get_num_threads()
+        (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos,
+         cs) = extension().forward_pixel(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta),
+                                         opt(gamma), opt(background), coefs, intr, st.width, st.height, st.use_gef,
+                                         st.use_softmax, st.k_max, st.solved, nthreads, st.t_min, window)
+        ctx.save_for_backward(alpha_out, depth, t_final, ids, pk, box, toff, tlist, soff, spos, cs, intr,
+                              opt(background))
+        ctx.settings = st
+        ctx.window = window
+        ctx.n_splats = means2d.shape[0]
+        ctx.n_channels = colors.shape[1]
+        ctx.nthreads = nthreads   # the backward sums per-tile rows in the forward's order
+        ctx.mark_non_differentiable(cnt, pairs, t_final)
+        return rgb, alpha_out, depth, cnt, pairs, t_final
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t):
+        alpha_out, depth, t_final, ids, pk, box, toff, tlist, soff, spos, cs, intr, bg = ctx.saved_tensors
+        st = ctx.settings
+        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
+        grads = extension().backward_pixel(
+            g_rgb, g_alpha, g_depth, alpha_out, depth, ids, pk, box, toff, tlist, soff, spos, bg, cs, intr,
+            ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, ctx.nthreads, st.t_min, ctx.window)
+        # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window
+        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 4
+
+
 def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth, window: int) -> RenderOutput:
-    """sort="per_pixel" through the re-sorting window (forward only; csrc/cpu_pixel.cpp)."""
-    means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, _ = args
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in args):
-        raise ValueError("sort='per_pixel' on the cpu backend renders without gradients (forward only); "
+    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp); with gradients in the
+    modes without softmax competition."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, reg_values = args
+    if reg_values is not None:
+        raise ValueError("sort='per_pixel' on the cpu backend has no variance-regulariser sums (reg_values); "
+                         "render with sort='global' or backend='reference'")
+    if st.use_softmax and torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in args):
+        raise ValueError("sort='per_pixel' on the cpu backend has no backward for the softmax modes yet; "
                          "render under torch.no_grad(), or train with backend='reference' (exact order)")
-    empty = means2d.new_empty(0)
-    opt = lambda t: empty if t is None else t  # noqa: E731
     intr = torch.tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy], dtype=torch.float32)
-    rgb, alpha_out, depth, cnt, _, pairs = extension().forward_pixel(
-        means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(bg),
-        ray_depth.coefs.to(torch.float32).contiguous(), intr, st.width, st.height, st.use_gef, st.use_softmax,
-        st.k_max, st.solved, torch.get_num_threads(), st.t_min, int(window))
+    rgb, alpha_out, depth, cnt, pairs, _ = _RasterizePixelCPU.apply(
+        means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg,
+        ray_depth.coefs.detach().to(torch.float32).contiguous(), intr, st, int(window))
     return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
 
 
@@ -129,7 +169,8 @@ def rasterize_splats_cpu(
 ) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
-    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats, forward only."""
+    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (gradients in
+    the modes without softmax competition)."""
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
     if ray_depth is not None:

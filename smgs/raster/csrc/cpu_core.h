@@ -53,10 +53,13 @@ int64_t forward_tiles(const Scene& sc, const FwdOut& o, bool gef, bool soft);
 void backward_tiles(const Scene& sc, const BwdIn& in, float* G, bool gef, bool soft);
 void backward_tiles_soft(const Scene& sc, const BwdIn& in, float* G, bool gef);
 const char* simd_isa();
-// sort="per_pixel", forward only (cpu_pixel.cpp): each pixel re-sorts its tile's depth-ordered list
-// in a window of `window` splats by peak depth (coefs [M, 9] in pk row order; intrinsics fx, fy,
-// cx, cy). o.reg and o.last are not written.
+// sort="per_pixel" (cpu_pixel.cpp): each pixel re-sorts its tile's depth-ordered list in a window of
+// `window` splats by peak depth (coefs [M, 9] in pk row order; intrinsics fx, fy, cx, cy). o.reg
+// and o.last are not written. The backward takes the modes without softmax (in.Tf, in.last and
+// in.g_reg are not read) and fills G as backward_tiles does.
 int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
                             bool gef, bool soft);
+void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr,
+                          int window, bool gef);
 
 }  // namespace smgs

@@ -1,11 +1,17 @@
-// Per-pixel order on the CPU (sort="per_pixel"), forward only: StopThePop's bounded re-sorting
-// window. Each pixel walks its tile's list in the global (centre depth) order; every splat that
-// reaches it enters a window keyed by its peak depth along the pixel's ray (peak_depth in
-// splat_math.h); when the window holds `window` entries its nearest is composited (window 1 is the
-// global order). Equal keys
-// leave in arrival, i.e. global, order. A window at least as long as a pixel's list is the exact
-// per-pixel sort of smgs/raster/reference.py. One pixel at a time (no SIMD lanes: each pixel takes
-// its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one pixel.
+// Per-pixel order on the CPU (sort="per_pixel"): StopThePop's bounded re-sorting window. Each
+// pixel walks its tile's list in the global (centre depth) order; every splat that reaches it
+// enters a window keyed by its peak depth along the pixel's ray (peak_depth in splat_math.h); when
+// the window holds `window` entries its nearest is composited (window 1 is the global order). Equal
+// keys leave in arrival, i.e. global, order. A window at least as long as a pixel's list is the
+// exact per-pixel sort of smgs/raster/reference.py. One pixel at a time (no SIMD lanes: each pixel
+// takes its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one
+// pixel.
+//
+// Backward (the modes without softmax competition): per pixel, the forward's walk (walk_pixel, the
+// same code, so the same order) records the composited steps and the transmittance before each in
+// per-thread scratch; the sweep back to front adds each step's gradients to the row of its tile-list
+// entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global order), so the
+// gradients do not depend on the thread count. The order itself carries no gradient.
 #include "cpu_core.h"
 #include "parallel.h"
 
@@ -15,7 +21,7 @@ namespace {
 
 struct Entry {
   float t, q, a;
-  int row;
+  int pos;   // position in the tile's list (its row of pk is lst[pos])
 };
 
 struct Pixel {
@@ -70,15 +76,44 @@ inline void step(const Scene& sc, Pixel& px, float* C, const float* s, const Ent
   ++px.cnt;
 }
 
-// Composite the window's nearest entry (the first of equal keys) and remove it.
-template <bool SOFT>
-inline void pop(const Scene& sc, Pixel& px, float* C, std::vector<Entry>& win) {
+// Hand the window's nearest entry (the first of equal keys) to `take` and remove it.
+template <class Take>
+inline void pop(std::vector<Entry>& win, Take&& take) {
   size_t m = 0;
   for (size_t k = 1; k < win.size(); ++k)
     if (win[k].t < win[m].t) m = k;
   const Entry e = win[m];
   win.erase(win.begin() + m);   // keeps arrival order among the rest
-  step<SOFT>(sc, px, C, sc.pk + size_t(e.row) * sc.S, e);
+  take(e);
+}
+
+// One pixel's splats in its windowed order: `take(entry)` for each, until it returns false (the
+// pixel is done). Returns the pairs evaluated. The forward and the backward both walk through here,
+// so their orders are the same.
+template <bool GEF, class Take>
+inline int64_t walk_pixel(const Scene& sc, const int32_t* lst, int n, int x, int y, const float* coefs,
+                          const float* intr, int window, std::vector<Entry>& win, Take&& take) {
+  const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
+  const float u = (fx - intr[2]) / intr[0], v = (fy - intr[3]) / intr[1];
+  win.clear();
+  bool live = true;
+  int64_t pairs = 0;
+  auto pass = [&](const Entry& e) { live = take(e); };
+  for (int i = 0; i < n && live; ++i) {
+    const int row = lst[i];
+    const int32_t* b = sc.box + 4 * size_t(row);
+    if (x < b[0] || x > b[1] || y < b[2] || y > b[3]) continue;
+    const float* s = sc.pk + size_t(row) * sc.S;
+    ++pairs;
+    const Quad<float> k = splat_quad(fx, fy, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
+    if (!(k.q <= kQMax)) continue;
+    const float a = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]).a;
+    if (!(a >= kAlphaMin)) continue;
+    win.push_back({peak_depth(u, v, coefs + size_t(row) * 9, s[P_D]), k.q, a, i});
+    if (int(win.size()) >= window) pop(win, pass);
+  }
+  while (!win.empty() && live) pop(win, pass);
+  return pairs;
 }
 
 template <bool GEF, bool SOFT>
@@ -95,25 +130,12 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
     const int n = sc.toff[t + 1] - sc.toff[t];
     for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
-        const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
-        const float u = (fx - intr[2]) / intr[0], v = (fy - intr[3]) / intr[1];
         Pixel px;
         std::fill(C.begin(), C.end(), 0.f);
-        win.clear();
-        for (int i = 0; i < n && !px.done; ++i) {
-          const int row = lst[i];
-          const int32_t* b = sc.box + 4 * size_t(row);
-          if (x < b[0] || x > b[1] || y < b[2] || y > b[3]) continue;
-          const float* s = sc.pk + size_t(row) * sc.S;
-          ++pairs[w];
-          const Quad<float> k = splat_quad(fx, fy, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
-          if (!(k.q <= kQMax)) continue;
-          const float a = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]).a;
-          if (!(a >= kAlphaMin)) continue;
-          win.push_back({peak_depth(u, v, coefs + size_t(row) * 9, s[P_D]), k.q, a, row});
-          if (int(win.size()) >= window) pop<SOFT>(sc, px, C.data(), win);
-        }
-        while (!win.empty() && !px.done) pop<SOFT>(sc, px, C.data(), win);
+        pairs[w] += walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
+          step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
+          return !px.done;
+        });
         const size_t pix = size_t(y) * sc.W + x;
         for (int c = 0; c < sc.nch; ++c) o.rgb[pix * sc.nch + c] = C[c] + (sc.bg ? px.T * sc.bg[c] : 0.f);
         o.alpha[pix] = px.A;
@@ -127,6 +149,82 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
   return total;
 }
 
+// A composited step of one pixel, for its backward: the tile-list position and T before it.
+struct Taken {
+  int pos;
+  float T;
+};
+
+// G: gradient rows (stride Sp, pk layout) of the tile-list entries; each tile writes only its own.
+template <bool GEF>
+void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr, int window) {
+  const int nt = sc.tiles_x * sc.tiles_y;
+  const int Sp = padded(sc.S), nch = sc.nch;
+  parallel_dynamic(sc.nthreads, nt, [&](int, int64_t t) {
+    std::vector<Entry> win;
+    win.reserve(window + 1);
+    std::vector<Taken> taken;
+    std::vector<float> gC(nch);
+    const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
+    const int32_t* lst = sc.tlist + sc.toff[t];
+    const int n = sc.toff[t + 1] - sc.toff[t];
+    float* Gt = G + size_t(sc.toff[t]) * Sp;
+    std::fill(Gt, Gt + size_t(n) * Sp, 0.f);
+    for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
+      for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
+        // the forward's walk again (3DGS steps: only T matters for the order of events)
+        taken.clear();
+        float T = 1.f;
+        walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
+          const float T0 = T * (1.f - e.a);
+          if (T0 < sc.tstop) return false;   // not composited: the pixel is done (step<false>)
+          taken.push_back({e.pos, T});
+          T = T0;
+          return true;
+        });
+        if (taken.empty()) continue;
+        // dL/d outputs -> dL/d final state: rgb = C + T·bg, alpha = A, depth = C_d / A
+        const size_t pix = size_t(y) * sc.W + x;
+        float gT = 0.f;
+        for (int c = 0; c < nch; ++c) {
+          gC[c] = in.g_rgb[pix * nch + c];
+          if (sc.bg) gT += gC[c] * sc.bg[c];
+        }
+        const float A = in.alpha[pix];
+        const float gCd = A > 0.f ? in.g_depth[pix] / A : 0.f;
+        const float gA = in.g_alpha[pix] - (A > 0.f ? in.g_depth[pix] * in.depth[pix] / A : 0.f);
+        const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
+        for (size_t k = taken.size(); k-- > 0;) {
+          const int pos = taken[k].pos;
+          const float* s = sc.pk + size_t(lst[pos]) * sc.S;
+          const Factor f{s[P_CA], s[P_CB], s[P_CC]};
+          const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], f);
+          const Absorb<float> ab = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]);
+          const float a = ab.a, Tpre = taken[k].T, aT = a * Tpre, d = s[P_D];
+          float* g = Gt + size_t(pos) * Sp;
+          float g_aT = gA;   // C' = C + c·aT, A' = A + aT
+          for (int c = 0; c < nch; ++c) {
+            g_aT += gC[c] * s[P_COL + c];
+            g[P_COL + c] += gC[c] * aT;
+          }
+          g_aT += gCd * d;
+          g[P_D] += gCd * aT;
+          float g_a, gTpre;
+          vanilla_step_bwd(Tpre, a, g_aT, gT, gTpre, g_a);
+          gT = gTpre;
+          const KernGrad<float> kg = splat_kernel_bwd<GEF>(q, ab, f, s[P_O], s[P_AL], g_a, 0.f);
+          g[P_MX] += kg.mx;
+          g[P_MY] += kg.my;
+          g[P_CA] += kg.ca;
+          g[P_CB] += kg.cb;
+          g[P_CC] += kg.cc;
+          g[P_O] += kg.o;
+          if (GEF) g[P_AL] += kg.alpha;
+        }
+      }
+  });
+}
+
 }  // namespace
 
 int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
@@ -135,6 +233,12 @@ int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs
                        : pixel_tiles<true, false>(sc, o, coefs, intr, window);
   return soft ? pixel_tiles<false, true>(sc, o, coefs, intr, window)
               : pixel_tiles<false, false>(sc, o, coefs, intr, window);
+}
+
+void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr,
+                          int window, bool gef) {
+  if (gef) pixel_bwd_tiles<true>(sc, in, G, coefs, intr, window);
+  else pixel_bwd_tiles<false>(sc, in, G, coefs, intr, window);
 }
 
 }  // namespace smgs
