@@ -94,7 +94,7 @@ class _RasterizePixelCPU(torch.autograd.Function):
     """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp): inputs as
     ``_RasterizeCPU`` without reg_values, then the coefficients and intrinsics of the peak depths
     and the settings. The backward recomputes each pixel's windowed order (the order carries no
-    gradient) and takes the modes without softmax."""
+    gradient)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, coefs, intr,
@@ -124,21 +124,18 @@ class _RasterizePixelCPU(torch.autograd.Function):
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
         grads = extension().backward_pixel(
             g_rgb, g_alpha, g_depth, alpha_out, depth, ids, pk, box, toff, tlist, soff, spos, bg, cs, intr,
-            ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, ctx.nthreads, st.t_min, ctx.window)
+            ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+            ctx.nthreads, st.t_min, ctx.window)
         # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 4
 
 
 def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth, window: int) -> RenderOutput:
-    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp); with gradients in the
-    modes without softmax competition."""
+    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp), with gradients."""
     means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, reg_values = args
     if reg_values is not None:
         raise ValueError("sort='per_pixel' on the cpu backend has no variance-regulariser sums (reg_values); "
                          "render with sort='global' or backend='reference'")
-    if st.use_softmax and torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in args):
-        raise ValueError("sort='per_pixel' on the cpu backend has no backward for the softmax modes yet; "
-                         "render under torch.no_grad(), or train with backend='reference' (exact order)")
     intr = torch.tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy], dtype=torch.float32)
     rgb, alpha_out, depth, cnt, pairs, _ = _RasterizePixelCPU.apply(
         means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg,
@@ -169,8 +166,8 @@ def rasterize_splats_cpu(
 ) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
-    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (gradients in
-    the modes without softmax competition)."""
+    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (no
+    ``reg_values``)."""
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
     if ray_depth is not None:

@@ -55,11 +55,11 @@ void backward_tiles_soft(const Scene& sc, const BwdIn& in, float* G, bool gef);
 const char* simd_isa();
 // sort="per_pixel" (cpu_pixel.cpp): each pixel re-sorts its tile's depth-ordered list in a window of
 // `window` splats by peak depth (coefs [M, 9] in pk row order; intrinsics fx, fy, cx, cy). o.reg
-// and o.last are not written. The backward takes the modes without softmax (in.Tf, in.last and
-// in.g_reg are not read) and fills G as backward_tiles does.
+// and o.last are not written. The backward (in.Tf, in.last and in.g_reg are not read) fills G as
+// backward_tiles does.
 int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
                             bool gef, bool soft);
 void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr,
-                          int window, bool gef);
+                          int window, bool gef, bool soft);
 
 }  // namespace smgs

@@ -367,23 +367,25 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
           P.toff, P.tlist, P.soff, P.spos, cs};
 }
 
-// Backward of forward_pixel for the modes without softmax (the same windowed order, recomputed).
-// Returns the gradients as backward does (beta, gamma, reg_values: zeros).
+// Backward of forward_pixel (the same windowed order, recomputed). Returns the gradients as
+// backward does (reg_values: none).
 std::vector<at::Tensor> backward_pixel(at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth, at::Tensor alpha_out,
                                        at::Tensor depth_out, at::Tensor ids, at::Tensor pk, at::Tensor box,
                                        at::Tensor toff, at::Tensor tlist, at::Tensor soff, at::Tensor spos,
                                        at::Tensor bg, at::Tensor cs, at::Tensor intr, int64_t N, int64_t nch, int64_t W,
-                                       int64_t H, bool gef, int64_t nthreads, double t_min, int64_t window) {
+                                       int64_t H, bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
+                                       double t_min, int64_t window) {
   check_f32(g_rgb, "grad rgb");
   check_f32(g_alpha, "grad alpha");
   check_f32(g_depth, "grad depth");
   check_f32(intr, "intrinsics");
   TORCH_CHECK(window >= 1, "window must be >= 1");
-  Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), 0, 0, true, 1.0, int(nthreads), t_min);
+  Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), 0, kmax, solved, 1.0, int(nthreads),
+                        t_min);
   at::Tensor E = at::empty({tlist.numel(), padded(sc.S)}, at::TensorOptions().dtype(at::kFloat));
   BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(), nullptr,
            alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(), nullptr, nullptr};
-  backward_pixel_tiles(sc, in, E.data_ptr<float>(), cs.data_ptr<float>(), intr.data_ptr<float>(), int(window), gef);
+  backward_pixel_tiles(sc, in, E.data_ptr<float>(), cs.data_ptr<float>(), intr.data_ptr<float>(), int(window), gef, soft);
   return splat_grads(E, ids, soff, spos, N, int(nch), 0, sc.M, sc.S, int(nthreads));
 }
 

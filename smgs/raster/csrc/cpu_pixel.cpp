@@ -7,10 +7,10 @@
 // takes its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one
 // pixel.
 //
-// Backward (the modes without softmax competition): per pixel, the forward's walk (walk_pixel, the
-// same code, so the same order) records the composited steps and the transmittance before each in
-// per-thread scratch; the sweep back to front adds each step's gradients to the row of its tile-list
-// entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global order), so the
+// Backward, every mode: per pixel, the forward's walk and steps (walk_pixel and step, the same code,
+// so the same order and values) record the composited steps and the state before each in
+// per-thread scratch; the sweep back to front (the adjoints of splat_math.h, as bwd_block in
+// cpu_tiles.h) adds each step's gradients to the row of its tile-list entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global order), so the
 // gradients do not depend on the thread count. The order itself carries no gradient.
 #include "cpu_core.h"
 #include "parallel.h"
@@ -149,22 +149,24 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
   return total;
 }
 
-// A composited step of one pixel, for its backward: the tile-list position and T before it.
+// A composited step of one pixel, for its backward: the tile-list position and the state before it
+// (the colour state before it, which only a softmax step's adjoint reads, is kept beside).
 struct Taken {
   int pos;
-  float T;
+  Pixel pre;
 };
 
 // G: gradient rows (stride Sp, pk layout) of the tile-list entries; each tile writes only its own.
-template <bool GEF>
+// The adjoint of step<SOFT> per composited splat, back to front (as bwd_block in cpu_tiles.h).
+template <bool GEF, bool SOFT>
 void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr, int window) {
   const int nt = sc.tiles_x * sc.tiles_y;
-  const int Sp = padded(sc.S), nch = sc.nch;
+  const int Sp = padded(sc.S), nch = sc.nch, nc = nch + 1;
   parallel_dynamic(sc.nthreads, nt, [&](int, int64_t t) {
     std::vector<Entry> win;
     win.reserve(window + 1);
     std::vector<Taken> taken;
-    std::vector<float> gC(nch);
+    std::vector<float> C(nc), Cpre, gC(nc);
     const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
     const int32_t* lst = sc.tlist + sc.toff[t];
     const int n = sc.toff[t + 1] - sc.toff[t];
@@ -172,14 +174,20 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* co
     std::fill(Gt, Gt + size_t(n) * Sp, 0.f);
     for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
-        // the forward's walk again (3DGS steps: only T matters for the order of events)
+        // the forward's walk and steps again, keeping the state before each composited step
         taken.clear();
-        float T = 1.f;
+        Cpre.clear();
+        std::fill(C.begin(), C.end(), 0.f);
+        Pixel px;
         walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
-          const float T0 = T * (1.f - e.a);
-          if (T0 < sc.tstop) return false;   // not composited: the pixel is done (step<false>)
-          taken.push_back({e.pos, T});
-          T = T0;
+          const Pixel pre = px;
+          if (SOFT) Cpre.insert(Cpre.end(), C.begin(), C.end());
+          step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
+          if (px.done) {   // not composited
+            if (SOFT) Cpre.resize(Cpre.size() - nc);
+            return false;
+          }
+          taken.push_back({e.pos, pre});
           return true;
         });
         if (taken.empty()) continue;
@@ -190,29 +198,73 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* co
           gC[c] = in.g_rgb[pix * nch + c];
           if (sc.bg) gT += gC[c] * sc.bg[c];
         }
-        const float A = in.alpha[pix];
-        const float gCd = A > 0.f ? in.g_depth[pix] / A : 0.f;
-        const float gA = in.g_alpha[pix] - (A > 0.f ? in.g_depth[pix] * in.depth[pix] / A : 0.f);
+        const float Aout = in.alpha[pix];
+        gC[nch] = Aout > 0.f ? in.g_depth[pix] / Aout : 0.f;
+        float gA = in.g_alpha[pix] - (Aout > 0.f ? in.g_depth[pix] * in.depth[pix] / Aout : 0.f);
+        float gdp = 0.f, gpp = 0.f;   // adjoints of the running means (softmax head only)
         const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
         for (size_t k = taken.size(); k-- > 0;) {
           const int pos = taken[k].pos;
+          const Pixel& P = taken[k].pre;
           const float* s = sc.pk + size_t(lst[pos]) * sc.S;
           const Factor f{s[P_CA], s[P_CB], s[P_CC]};
           const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], f);
           const Absorb<float> ab = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]);
-          const float a = ab.a, Tpre = taken[k].T, aT = a * Tpre, d = s[P_D];
+          const float a = ab.a, p = -q.q, d = s[P_D];
+          const bool head = SOFT && P.cnt < sc.kmax, soft = head && P.A > 0.f;
+          SoftFwd<float> sf;
+          float aT = a * P.T, r = 1.f, wk = 1.f;   // a head step at A = 0 has wk = 1 (step<true>)
+          if (soft) {
+            sf = softmax_fwd(P.T, P.A, P.dp, P.pp, a, p, d, s[P_BE], s[P_GA], sc.solved);
+            aT = sf.aT;
+            r = sf.r;
+            wk = sf.wk;
+          }
           float* g = Gt + size_t(pos) * Sp;
-          float g_aT = gA;   // C' = C + c·aT, A' = A + aT
+          // adjoint of C' = C·r + c·aT (depth is channel nch)
+          float g_aT = 0.f, g_r = 0.f;
           for (int c = 0; c < nch; ++c) {
             g_aT += gC[c] * s[P_COL + c];
             g[P_COL + c] += gC[c] * aT;
           }
-          g_aT += gCd * d;
-          g[P_D] += gCd * aT;
-          float g_a, gTpre;
-          vanilla_step_bwd(Tpre, a, g_aT, gT, gTpre, g_a);
+          g_aT += gC[nch] * d;
+          float g_d = gC[nch] * aT, g_p = 0.f, g_wk = 0.f, g_a, gTpre;
+          if (soft) {
+            const float* cp = Cpre.data() + k * nc;
+            for (int c = 0; c < nc; ++c) {
+              g_r += gC[c] * cp[c];
+              gC[c] *= r;
+            }
+          }
+          if (head) {   // adjoint of the running means d' = d + (d_k - d)·wk, p' likewise
+            g_wk = gdp * (d - P.dp) + gpp * (p - P.pp);
+            g_d += gdp * wk;
+            g_p = gpp * wk;
+            gdp -= gdp * wk;
+            gpp -= gpp * wk;
+          }
+          if (soft) {
+            const SoftGrad<float> sg = softmax_bwd(sf, P.T, P.A, P.dp, P.pp, a, p, s[P_BE], s[P_GA], sc.solved, gT,
+                                                   gA, g_r, g_aT, g_wk);
+            gTpre = sg.T;
+            gA = sg.A;
+            g_a = sg.a;
+            g_p += sg.p;
+            g_d += sg.d;
+            gdp += sg.dp;
+            gpp += sg.pp;
+            g[P_BE] += sg.beta;
+            g[P_GA] += sg.gamma;
+          } else if (SOFT) {
+            float gAv;
+            vanilla_coef_bwd(P.T, P.A, a, gT, gA, g_aT, g_wk, gTpre, gAv, g_a);
+            gA = gAv;
+          } else {
+            vanilla_step_bwd(P.T, a, g_aT + gA, gT, gTpre, g_a);   // A' = A + aT: dL/dA passes through
+          }
           gT = gTpre;
-          const KernGrad<float> kg = splat_kernel_bwd<GEF>(q, ab, f, s[P_O], s[P_AL], g_a, 0.f);
+          g[P_D] += g_d;
+          const KernGrad<float> kg = splat_kernel_bwd<GEF>(q, ab, f, s[P_O], s[P_AL], g_a, g_p);
           g[P_MX] += kg.mx;
           g[P_MY] += kg.my;
           g[P_CA] += kg.ca;
@@ -236,9 +288,11 @@ int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs
 }
 
 void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr,
-                          int window, bool gef) {
-  if (gef) pixel_bwd_tiles<true>(sc, in, G, coefs, intr, window);
-  else pixel_bwd_tiles<false>(sc, in, G, coefs, intr, window);
+                          int window, bool gef, bool soft) {
+  if (gef) soft ? pixel_bwd_tiles<true, true>(sc, in, G, coefs, intr, window)
+                : pixel_bwd_tiles<true, false>(sc, in, G, coefs, intr, window);
+  else soft ? pixel_bwd_tiles<false, true>(sc, in, G, coefs, intr, window)
+            : pixel_bwd_tiles<false, false>(sc, in, G, coefs, intr, window);
 }
 
 }  // namespace smgs
