@@ -93,8 +93,8 @@ class _RasterizeCPU(torch.autograd.Function):
 class _RasterizePixelCPU(torch.autograd.Function):
     """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp): inputs as
     ``_RasterizeCPU`` without reg_values, then the coefficients and intrinsics of the peak depths
-    and the settings. The backward recomputes each pixel's windowed order (the order carries no
-    gradient)."""
+    and the settings. Where a gradient is needed the forward records each pixel's composited steps
+    in its order (the order carries no gradient), and the backward replays them."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, coefs, intr,
@@ -102,30 +102,28 @@ class _RasterizePixelCPU(torch.autograd.Function):
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
         st = settings
-        nthreads = torch.get_num_threads()
-        (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos,
-         cs) = extension().forward_pixel(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta),
-                                         opt(gamma), opt(background), coefs, intr, st.width, st.height, st.use_gef,
-                                         st.use_softmax, st.k_max, st.solved, nthreads, st.t_min, window)
-        ctx.save_for_backward(alpha_out, depth, t_final, ids, pk, box, toff, tlist, soff, spos, cs, intr,
+        (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos, order,
+         order_off) = extension().forward_pixel(
+            means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background), coefs,
+            intr, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved, torch.get_num_threads(),
+            st.t_min, window, any(ctx.needs_input_grad[:9]))
+        ctx.save_for_backward(alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off,
                               opt(background))
         ctx.settings = st
-        ctx.window = window
         ctx.n_splats = means2d.shape[0]
         ctx.n_channels = colors.shape[1]
-        ctx.nthreads = nthreads   # the backward sums per-tile rows in the forward's order
         ctx.mark_non_differentiable(cnt, pairs, t_final)
         return rgb, alpha_out, depth, cnt, pairs, t_final
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t):
-        alpha_out, depth, t_final, ids, pk, box, toff, tlist, soff, spos, cs, intr, bg = ctx.saved_tensors
+        alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
         grads = extension().backward_pixel(
-            g_rgb, g_alpha, g_depth, alpha_out, depth, ids, pk, box, toff, tlist, soff, spos, bg, cs, intr,
-            ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
-            ctx.nthreads, st.t_min, ctx.window)
+            g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, ids, pk, box, toff, tlist, soff, spos, order, order_off,
+            bg, ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+            torch.get_num_threads(), st.t_min)
         # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 4
 

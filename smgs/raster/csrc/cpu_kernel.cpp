@@ -320,12 +320,13 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
 
 // sort="per_pixel" (cpu_pixel.cpp). coefs [N, 9] (smgs/raster/ray_depth.py), intr (fx, fy, cx, cy).
 // Returns [rgb, alpha, depth, n_contrib, T_final, pairs, ids, pk, box, tile_off, tile_list, splat_off,
-// splat_pos, coefs in pk row order]: the tensors after `pairs` are what backward_pixel reads.
+// splat_pos, order, order_off]: with keep_order the pixels' composited steps (PixelOrder in
+// cpu_core.h; else empty), which backward_pixel reads with the tensors after `pairs`.
 std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
                                       at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
                                       at::Tensor bg, at::Tensor coefs, at::Tensor intr, int64_t W, int64_t H,
                                       bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
-                                      double t_min, int64_t window) {
+                                      double t_min, int64_t window, bool keep_order) {
   check_f32(means2d, "means2d");
   check_f32(conics, "conics");
   check_f32(opac, "opacities");
@@ -351,41 +352,49 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
                         t_min);
   // the coefficients in pk row (depth) order
   const int64_t M = P.ids.numel();
-  at::Tensor cs = at::empty({M, 9}, at::TensorOptions().dtype(at::kFloat));
+  std::vector<float> cs(size_t(M) * 9);
   const int32_t* ids = P.ids.data_ptr<int32_t>();
   const float* cf = coefs.data_ptr<float>();
-  float* csp = cs.data_ptr<float>();
-  for (int64_t j = 0; j < M; ++j) std::memcpy(csp + size_t(j) * 9, cf + size_t(ids[j]) * 9, sizeof(float) * 9);
+  for (int64_t j = 0; j < M; ++j) std::memcpy(&cs[size_t(j) * 9], cf + size_t(ids[j]) * 9, sizeof(float) * 9);
   auto f32 = at::TensorOptions().dtype(at::kFloat);
   auto i32 = at::TensorOptions().dtype(at::kInt);
   at::Tensor rgb = at::empty({H, W, nch}, f32), a = at::empty({H, W}, f32), dep = at::empty({H, W}, f32),
              Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32);
   FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(), nullptr,
            nullptr, cnt.data_ptr<int32_t>()};
-  int64_t pairs = forward_pixel_tiles(sc, o, csp, intr.data_ptr<float>(), int(window), gef, soft);
+  std::vector<std::vector<int32_t>> order;
+  int64_t pairs = forward_pixel_tiles(sc, o, cs.data(), intr.data_ptr<float>(), int(window), gef, soft,
+                                      keep_order ? &order : nullptr);
+  // the tiles' records one after another
+  at::Tensor ooff = at::zeros({int64_t(order.size()) + 1}, at::TensorOptions().dtype(at::kLong));
+  int64_t* op = ooff.data_ptr<int64_t>();
+  for (size_t t = 0; t < order.size(); ++t) op[t + 1] = op[t] + int64_t(order[t].size());
+  at::Tensor opos = at::empty({op[order.size()]}, i32);
+  for (size_t t = 0; t < order.size(); ++t)
+    std::copy(order[t].begin(), order[t].end(), opos.data_ptr<int32_t>() + op[t]);
   return {rgb, a, dep, cnt, Tf, at::full({1}, pairs, at::TensorOptions().dtype(at::kLong)), P.ids, P.pk, P.box,
-          P.toff, P.tlist, P.soff, P.spos, cs};
+          P.toff, P.tlist, P.soff, P.spos, opos, ooff};
 }
 
-// Backward of forward_pixel (the same windowed order, recomputed). Returns the gradients as
-// backward does (reg_values: none).
+// Backward of forward_pixel (kept with keep_order): its recorded order replayed. Returns the
+// gradients as backward does (reg_values: none).
 std::vector<at::Tensor> backward_pixel(at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth, at::Tensor alpha_out,
-                                       at::Tensor depth_out, at::Tensor ids, at::Tensor pk, at::Tensor box,
-                                       at::Tensor toff, at::Tensor tlist, at::Tensor soff, at::Tensor spos,
-                                       at::Tensor bg, at::Tensor cs, at::Tensor intr, int64_t N, int64_t nch, int64_t W,
-                                       int64_t H, bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
-                                       double t_min, int64_t window) {
+                                       at::Tensor depth_out, at::Tensor cnt, at::Tensor ids, at::Tensor pk,
+                                       at::Tensor box, at::Tensor toff, at::Tensor tlist, at::Tensor soff,
+                                       at::Tensor spos, at::Tensor order, at::Tensor order_off, at::Tensor bg,
+                                       int64_t N, int64_t nch, int64_t W, int64_t H, bool gef, bool soft, int64_t kmax,
+                                       bool solved, int64_t nthreads, double t_min) {
   check_f32(g_rgb, "grad rgb");
   check_f32(g_alpha, "grad alpha");
   check_f32(g_depth, "grad depth");
-  check_f32(intr, "intrinsics");
-  TORCH_CHECK(window >= 1, "window must be >= 1");
+  TORCH_CHECK(order_off.numel() == toff.numel(), "backward_pixel needs the order of a forward_pixel with keep_order");
   Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), 0, kmax, solved, 1.0, int(nthreads),
                         t_min);
   at::Tensor E = at::empty({tlist.numel(), padded(sc.S)}, at::TensorOptions().dtype(at::kFloat));
   BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(), nullptr,
            alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(), nullptr, nullptr};
-  backward_pixel_tiles(sc, in, E.data_ptr<float>(), cs.data_ptr<float>(), intr.data_ptr<float>(), int(window), gef, soft);
+  const PixelOrder po{order.data_ptr<int32_t>(), order_off.data_ptr<int64_t>(), cnt.data_ptr<int32_t>()};
+  backward_pixel_tiles(sc, in, E.data_ptr<float>(), po, gef, soft);
   return splat_grads(E, ids, soff, spos, N, int(nch), 0, sc.M, sc.S, int(nthreads));
 }
 

@@ -7,9 +7,9 @@
 // takes its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one
 // pixel.
 //
-// Backward, every mode: per pixel, the forward's walk and steps (walk_pixel and step, the same code,
-// so the same order and values) record the composited steps and the state before each in
-// per-thread scratch; the sweep back to front (the adjoints of splat_math.h, as bwd_block in
+// Backward, every mode: the forward records each pixel's composited steps (their tile-list
+// positions, in its order); the backward replays them through the forward's step (the same code, so
+// the same values), keeping the state before each in per-thread scratch; the sweep back to front (the adjoints of splat_math.h, as bwd_block in
 // cpu_tiles.h) adds each step's gradients to the row of its tile-list entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global order), so the
 // gradients do not depend on the thread count. The order itself carries no gradient.
 #include "cpu_core.h"
@@ -88,8 +88,7 @@ inline void pop(std::vector<Entry>& win, Take&& take) {
 }
 
 // One pixel's splats in its windowed order: `take(entry)` for each, until it returns false (the
-// pixel is done). Returns the pairs evaluated. The forward and the backward both walk through here,
-// so their orders are the same.
+// pixel is done). Returns the pairs evaluated.
 template <bool GEF, class Take>
 inline int64_t walk_pixel(const Scene& sc, const int32_t* lst, int n, int x, int y, const float* coefs,
                           const float* intr, int window, std::vector<Entry>& win, Take&& take) {
@@ -117,7 +116,8 @@ inline int64_t walk_pixel(const Scene& sc, const int32_t* lst, int n, int x, int
 }
 
 template <bool GEF, bool SOFT>
-int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window) {
+int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
+                    std::vector<std::vector<int32_t>>* order) {
   const int nt = sc.tiles_x * sc.tiles_y;
   const int nw = workers(sc.nthreads, nt);
   std::vector<int64_t> pairs(nw, 0);
@@ -128,12 +128,14 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
     const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
     const int32_t* lst = sc.tlist + sc.toff[t];
     const int n = sc.toff[t + 1] - sc.toff[t];
+    std::vector<int32_t>* taken = order ? &(*order)[t] : nullptr;
     for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
         Pixel px;
         std::fill(C.begin(), C.end(), 0.f);
         pairs[w] += walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
           step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
+          if (taken && !px.done) taken->push_back(e.pos);
           return !px.done;
         });
         const size_t pix = size_t(y) * sc.W + x;
@@ -159,12 +161,10 @@ struct Taken {
 // G: gradient rows (stride Sp, pk layout) of the tile-list entries; each tile writes only its own.
 // The adjoint of step<SOFT> per composited splat, back to front (as bwd_block in cpu_tiles.h).
 template <bool GEF, bool SOFT>
-void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr, int window) {
+void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrder& order) {
   const int nt = sc.tiles_x * sc.tiles_y;
   const int Sp = padded(sc.S), nch = sc.nch, nc = nch + 1;
   parallel_dynamic(sc.nthreads, nt, [&](int, int64_t t) {
-    std::vector<Entry> win;
-    win.reserve(window + 1);
     std::vector<Taken> taken;
     std::vector<float> C(nc), Cpre, gC(nc);
     const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
@@ -172,27 +172,26 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* co
     const int n = sc.toff[t + 1] - sc.toff[t];
     float* Gt = G + size_t(sc.toff[t]) * Sp;
     std::fill(Gt, Gt + size_t(n) * Sp, 0.f);
+    const int32_t* ord = order.pos + order.off[t];   // the tile's pixels' composited steps, in order
     for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
-        // the forward's walk and steps again, keeping the state before each composited step
+        const size_t pix = size_t(y) * sc.W + x;
+        const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
+        // the forward's steps again, in its order, keeping the state before each
         taken.clear();
         Cpre.clear();
         std::fill(C.begin(), C.end(), 0.f);
         Pixel px;
-        walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
-          const Pixel pre = px;
+        for (int m = order.cnt[pix]; m > 0; --m, ++ord) {
+          const float* s = sc.pk + size_t(lst[*ord]) * sc.S;
+          const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
+          const float a = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]).a;
+          taken.push_back({*ord, px});
           if (SOFT) Cpre.insert(Cpre.end(), C.begin(), C.end());
-          step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
-          if (px.done) {   // not composited
-            if (SOFT) Cpre.resize(Cpre.size() - nc);
-            return false;
-          }
-          taken.push_back({e.pos, pre});
-          return true;
-        });
+          step<SOFT>(sc, px, C.data(), s, Entry{0.f, q.q, a, *ord});
+        }
         if (taken.empty()) continue;
         // dL/d outputs -> dL/d final state: rgb = C + T·bg, alpha = A, depth = C_d / A
-        const size_t pix = size_t(y) * sc.W + x;
         float gT = 0.f;
         for (int c = 0; c < nch; ++c) {
           gC[c] = in.g_rgb[pix * nch + c];
@@ -202,7 +201,6 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* co
         gC[nch] = Aout > 0.f ? in.g_depth[pix] / Aout : 0.f;
         float gA = in.g_alpha[pix] - (Aout > 0.f ? in.g_depth[pix] * in.depth[pix] / Aout : 0.f);
         float gdp = 0.f, gpp = 0.f;   // adjoints of the running means (softmax head only)
-        const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
         for (size_t k = taken.size(); k-- > 0;) {
           const int pos = taken[k].pos;
           const Pixel& P = taken[k].pre;
@@ -280,19 +278,17 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const float* co
 }  // namespace
 
 int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
-                            bool gef, bool soft) {
-  if (gef) return soft ? pixel_tiles<true, true>(sc, o, coefs, intr, window)
-                       : pixel_tiles<true, false>(sc, o, coefs, intr, window);
-  return soft ? pixel_tiles<false, true>(sc, o, coefs, intr, window)
-              : pixel_tiles<false, false>(sc, o, coefs, intr, window);
+                            bool gef, bool soft, std::vector<std::vector<int32_t>>* order) {
+  if (order) order->assign(size_t(sc.tiles_x) * sc.tiles_y, {});
+  if (gef) return soft ? pixel_tiles<true, true>(sc, o, coefs, intr, window, order)
+                       : pixel_tiles<true, false>(sc, o, coefs, intr, window, order);
+  return soft ? pixel_tiles<false, true>(sc, o, coefs, intr, window, order)
+              : pixel_tiles<false, false>(sc, o, coefs, intr, window, order);
 }
 
-void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const float* coefs, const float* intr,
-                          int window, bool gef, bool soft) {
-  if (gef) soft ? pixel_bwd_tiles<true, true>(sc, in, G, coefs, intr, window)
-                : pixel_bwd_tiles<true, false>(sc, in, G, coefs, intr, window);
-  else soft ? pixel_bwd_tiles<false, true>(sc, in, G, coefs, intr, window)
-            : pixel_bwd_tiles<false, false>(sc, in, G, coefs, intr, window);
+void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrder& order, bool gef, bool soft) {
+  if (gef) soft ? pixel_bwd_tiles<true, true>(sc, in, G, order) : pixel_bwd_tiles<true, false>(sc, in, G, order);
+  else soft ? pixel_bwd_tiles<false, true>(sc, in, G, order) : pixel_bwd_tiles<false, false>(sc, in, G, order);
 }
 
 }  // namespace smgs
