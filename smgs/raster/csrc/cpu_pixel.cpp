@@ -9,9 +9,10 @@
 //
 // Backward, every mode: the forward records each pixel's composited steps (their tile-list
 // positions, in its order); the backward replays them through the forward's step (the same code, so
-// the same values), keeping the state before each in per-thread scratch; the sweep back to front (the adjoints of splat_math.h, as bwd_block in
-// cpu_tiles.h) adds each step's gradients to the row of its tile-list entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global order), so the
-// gradients do not depend on the thread count. The order itself carries no gradient.
+// the same values), keeping the state before each in per-thread scratch; the sweep back to front
+// (the adjoints of splat_math.h, as bwd_block in cpu_tiles.h) adds each step's gradients to the row
+// of its tile-list entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global
+// order), so the gradients do not depend on the thread count. The order carries no gradient.
 #include "cpu_core.h"
 #include "parallel.h"
 
