@@ -56,7 +56,8 @@ def _crossing() -> dict:
     return dict(means3d=torch.tensor([[0.0, 0, 0.0], [0.05, 0.02, 1e-3], [0.1, -0.1, 0.6]]), quats=quats,
                 scales=torch.tensor([[0.6, 0.5, 0.0], [0.55, 0.6, 0.0], [0.4, 0.4, 0.4]]),
                 opacities=torch.tensor([0.9, 0.85, 0.95]), colors=torch.tensor([[1.0, 0, 0], [0, 0, 1.0], [0, 1, 0]]),
-                alpha=torch.tensor([1.3, 0.9, 2.0]), beta=torch.tensor([3.0, 1.0, 6.0]), gamma=torch.tensor([0.5, 2.0, 1.0]))
+                alpha=torch.tensor([1.3, 0.9, 2.0]), beta=torch.tensor([3.0, 1.0, 6.0]),
+                gamma=torch.tensor([0.5, 2.0, 1.0]))
 
 
 def _splats(sc: dict, cam: Camera):
