@@ -2,6 +2,7 @@
 
     python bench/raster.py                      # the two benchmark scenes + random scenes, all modes
     python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --repeats 9
+    python bench/raster.py --scenes 10k_256 --modes 3dgs --sorts global per_pixel --backends cpu
 
 Everything is timed through ``smgs.raster.rasterize`` (EWA projection and SH in PyTorch, then the
 backend), loss = image mean, median over repeats after a warm-up. The modes of a scene and backend
@@ -10,7 +11,9 @@ load. Columns: forward ms, forward + backward ms, splat-pixel pairs the backend 
 (forward; pairs / fwd+bwd time), peak resident memory of a forward+backward above the resident set
 before it, and each mode's time relative to ``3dgs`` on the same scene and backend (the median of
 the per-round ratios). The load average is printed with the table; ratios between modes are more
-stable than absolute times. To compare two source trees of the renderer, see ``bench/ab.py``.
+stable than absolute times. ``--sorts global per_pixel`` adds each mode in the per-pixel order
+(rows ``mode/per_pixel``, timed in the same rounds; ×3dgs is then against global ``3dgs``). To
+compare two source trees of the renderer, see ``bench/ab.py``.
 
 Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
 scenes made by the same recipe at other sizes. The reference backend is dense (every splat at every
@@ -127,7 +130,7 @@ def ratio_to(ts: dict[str, list[float]], key: str, base: str) -> float:
     return statistics.median(a / b for a, b in zip(ts[key], ts[base]))
 
 
-def mode_calls(params, cam, mode, backend, k_max):
+def mode_calls(params, cam, mode, backend, k_max, sort="global"):
     """(forward, forward+backward) closures of one mode, each returning the render output."""
     dev = torch.device("cuda" if backend == "cuda" else "cpu")
     params = {k: v.to(dev) for k, v in params.items()}
@@ -137,7 +140,7 @@ def mode_calls(params, cam, mode, backend, k_max):
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
                          alpha=p["alpha"], beta=p["beta"], gamma=p["gamma"], mode=mode, k_max=k_max,
-                         backend=backend)
+                         backend=backend, sort=sort)
 
     def fwd():
         with torch.no_grad():
@@ -159,7 +162,9 @@ def mode_calls(params, cam, mode, backend, k_max):
 def bench_modes(params, cam, modes, backend, k_max, repeats, warmup) -> dict[str, dict]:
     """Every mode on one scene and backend: forward and forward+backward times (modes interleaved
     round by round), pairs, peak memory, and ratios to ``3dgs`` as medians of per-round ratios."""
-    calls = {m: mode_calls(params, cam, m, backend, k_max) for m in modes}
+    # a label is a mode, or mode/sort for a sort other than global
+    calls = {m: mode_calls(params, cam, m.partition("/")[0], backend, k_max, m.partition("/")[2] or "global")
+             for m in modes}
     res: dict[str, dict] = {}
     for m, (fwd, _, _dev) in calls.items():
         out = fwd()
@@ -197,6 +202,7 @@ def main(argv=None) -> None:
     ap.add_argument("--scenes", nargs="+", default=["10k_256", "100k_512", *RANDOM_SCENES])
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--backends", nargs="+", default=["cpu", "cuda", "reference"])
+    ap.add_argument("--sorts", nargs="+", default=["global"], choices=["global", "per_pixel"])
     ap.add_argument("--k-max", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=1)
@@ -222,7 +228,10 @@ def main(argv=None) -> None:
             if backend == "reference" and n * cam.width * cam.height > args.reference_max_pairs:
                 continue
             reps = args.repeats if backend != "reference" else max(1, min(args.repeats, 3))
-            res = bench_modes(params, cam, args.modes, backend, args.k_max, reps, args.warmup)
+            labels = [m if s == "global" else f"{m}/{s}" for s in args.sorts for m in args.modes]
+            if backend == "cuda":
+                labels = [m for m in labels if "/" not in m]   # no per-pixel order on cuda
+            res = bench_modes(params, cam, labels, backend, args.k_max, reps, args.warmup)
             for mode, r in res.items():
                 print(f"  {name} {mode} {backend}: {r['fwd_ms']:.1f} / {r['fb_ms']:.1f} ms", file=sys.stderr,
                       flush=True)

@@ -43,10 +43,16 @@ def test_few_step_fit_decreases_loss(method):
     assert any("no SfM" in line for line in d["plan"])
 
 
-def test_stopthepop_trains_with_the_per_pixel_order():
+@pytest.mark.parametrize("backend", ["cpu", "reference"])   # the re-sorting window's backward, the exact order
+def test_stopthepop_trains_with_the_per_pixel_order(backend):
+    from smgs.raster import cpu
+
+    if backend == "cpu" and not cpu.is_available():
+        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
     scene = pattern_scene("circle4", 12)
     cfg = _config("3dgs", steps=6)
     del cfg["sort"]     # the method fixes it
+    cfg["backend"] = backend
     m = create_method("stopthepop", scene, cfg, device=CPU)
     assert m.config.mode == "3dgs" and m.config.sort == "per_pixel"
     losses = [m.train_step(s)["loss"] for s in range(6)]

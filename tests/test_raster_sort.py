@@ -261,17 +261,20 @@ def test_the_window_of_16_against_the_exact_sort_on_a_crowded_scene():
     assert float((err_win > 1 / 255).float().mean()) < 0.5 * float((err_glob > 1 / 255).float().mean())
 
 
-def test_the_cpu_window_refuses_gradients_and_auto_picks_by_grad_mode():
+def test_the_cpu_window_trains_and_auto_picks_it_without_regulariser_values():
     from smgs.raster import cpu
 
     if not cpu.is_available():
         pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
     sc = {k: t.clone().requires_grad_(True) for k, t in _scene(torch.float32).items()}
-    with pytest.raises(ValueError, match="without gradients"):
-        rasterize(**sc, camera=_camera(), mode="3dgs", backend="cpu", sort="per_pixel")
-    out = rasterize(**sc, camera=_camera(), mode="3dgs", backend="auto", sort="per_pixel")   # the reference
-    out.rgb.sum().backward()
-    assert sc["opacities"].grad.abs().sum() > 0
-    with torch.no_grad():
-        fast = rasterize(**sc, camera=_camera(), mode="3dgs", backend="auto", sort="per_pixel")
-    torch.testing.assert_close(fast.rgb, out.rgb.detach(), rtol=0, atol=2e-5)
+    exact = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="reference", sort="per_pixel")
+    fast = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="auto", sort="per_pixel")   # the cpu window
+    torch.testing.assert_close(fast.rgb, exact.rgb, rtol=0, atol=2e-5)
+    fast.rgb.sum().backward()
+    assert sc["beta"].grad.abs().sum() > 0
+    reg = torch.rand(5, 2, requires_grad=True)
+    with pytest.raises(ValueError, match="no variance-regulariser sums"):
+        rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="cpu", sort="per_pixel", reg_values=reg)
+    out = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="auto", sort="per_pixel", reg_values=reg)
+    out.reg.sum().backward()      # the reference
+    assert reg.grad.abs().sum() > 0

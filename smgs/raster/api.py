@@ -110,11 +110,10 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
                   + [("background", background), ("reg_values", reg_values)], pos_inf_ok=("gamma",))
 
 
-def _per_pixel_backend(device: torch.device, dtype: torch.dtype, inputs: tuple) -> str:
-    """``auto`` for sort="per_pixel": the CPU re-sorting window where no gradient is needed (it has
-    no backward), else the reference's exact order."""
-    needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs)
-    return "cpu" if not needs_grad and backend_available("cpu", device, dtype) else "reference"
+def _per_pixel_backend(device: torch.device, dtype: torch.dtype, reg_values: torch.Tensor | None) -> str:
+    """``auto`` for sort="per_pixel": the CPU re-sorting window wherever it applies (no regulariser
+    sums), else the reference's exact order."""
+    return "cpu" if reg_values is None and backend_available("cpu", device, dtype) else "reference"
 
 
 def rasterize_splats(
@@ -151,8 +150,8 @@ def rasterize_splats(
     0 never stops). ``ray_depth`` (from ``smgs.raster.ray_depth.ray_depth``): each pixel orders its
     splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``:
     exactly on the reference backend, through a re-sorting window of ``constants.SORT_WINDOW``
-    splats and without gradients on the cpu backend (``auto`` picks it where no gradient is needed),
-    not on cuda.
+    splats on the cpu backend (no ``reg_values``; ``auto`` picks it wherever it applies), not on
+    cuda.
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
@@ -169,9 +168,7 @@ def rasterize_splats(
         if backend == "cuda":
             raise ValueError("sort='per_pixel' has no CUDA kernel yet; use backend='reference' or 'auto'")
         if backend == "auto":
-            backend = _per_pixel_backend(means2d.device, means2d.dtype,
-                                         (means2d, conics, opacities, colors, depths, alpha, beta, gamma,
-                                          background, reg_values))
+            backend = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
     name = resolve_backend(backend, means2d.device, means2d.dtype)
     fn = _load_backend(name)
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}

@@ -90,19 +90,54 @@ class _RasterizeCPU(torch.autograd.Function):
         return kernel_grads(ctx, grads, g_rgb, t_final)
 
 
+class _RasterizePixelCPU(torch.autograd.Function):
+    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp): inputs as
+    ``_RasterizeCPU`` without reg_values, then the coefficients and intrinsics of the peak depths
+    and the settings. Where a gradient is needed the forward records each pixel's composited steps
+    in its order (the order carries no gradient), and the backward replays them."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, coefs, intr,
+                settings: CompositeSettings, window: int):
+        empty = means2d.new_empty(0)
+        opt = lambda t: empty if t is None else t  # noqa: E731
+        st = settings
+        (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos, order,
+         order_off) = extension().forward_pixel(
+            means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background), coefs,
+            intr, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved, torch.get_num_threads(),
+            st.t_min, window, any(ctx.needs_input_grad[:9]))
+        ctx.save_for_backward(alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off,
+                              opt(background))
+        ctx.settings = st
+        ctx.n_splats = means2d.shape[0]
+        ctx.n_channels = colors.shape[1]
+        ctx.mark_non_differentiable(cnt, pairs, t_final)
+        return rgb, alpha_out, depth, cnt, pairs, t_final
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t):
+        alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off, bg = ctx.saved_tensors
+        st = ctx.settings
+        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
+        grads = extension().backward_pixel(
+            g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, ids, pk, box, toff, tlist, soff, spos, order, order_off,
+            bg, ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+            torch.get_num_threads(), st.t_min)
+        # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window
+        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 4
+
+
 def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth, window: int) -> RenderOutput:
-    """sort="per_pixel" through the re-sorting window (forward only; csrc/cpu_pixel.cpp)."""
-    means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, _ = args
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in args):
-        raise ValueError("sort='per_pixel' on the cpu backend renders without gradients (forward only); "
-                         "render under torch.no_grad(), or train with backend='reference' (exact order)")
-    empty = means2d.new_empty(0)
-    opt = lambda t: empty if t is None else t  # noqa: E731
+    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp), with gradients."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, reg_values = args
+    if reg_values is not None:
+        raise ValueError("sort='per_pixel' on the cpu backend has no variance-regulariser sums (reg_values); "
+                         "render with sort='global' or backend='reference'")
     intr = torch.tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy], dtype=torch.float32)
-    rgb, alpha_out, depth, cnt, _, pairs = extension().forward_pixel(
-        means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(bg),
-        ray_depth.coefs.to(torch.float32).contiguous(), intr, st.width, st.height, st.use_gef, st.use_softmax,
-        st.k_max, st.solved, torch.get_num_threads(), st.t_min, int(window))
+    rgb, alpha_out, depth, cnt, pairs, _ = _RasterizePixelCPU.apply(
+        means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg,
+        ray_depth.coefs.detach().to(torch.float32).contiguous(), intr, st, int(window))
     return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
 
 
@@ -129,7 +164,8 @@ def rasterize_splats_cpu(
 ) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
-    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats, forward only."""
+    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (no
+    ``reg_values``)."""
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
     if ray_depth is not None:

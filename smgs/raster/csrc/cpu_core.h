@@ -53,10 +53,18 @@ int64_t forward_tiles(const Scene& sc, const FwdOut& o, bool gef, bool soft);
 void backward_tiles(const Scene& sc, const BwdIn& in, float* G, bool gef, bool soft);
 void backward_tiles_soft(const Scene& sc, const BwdIn& in, float* G, bool gef);
 const char* simd_isa();
-// sort="per_pixel", forward only (cpu_pixel.cpp): each pixel re-sorts its tile's depth-ordered list
-// in a window of `window` splats by peak depth (coefs [M, 9] in pk row order; intrinsics fx, fy,
-// cx, cy). o.reg and o.last are not written.
+// sort="per_pixel" (cpu_pixel.cpp): each pixel re-sorts its tile's depth-ordered list in a window of
+// `window` splats by peak depth (coefs [M, 9] in pk row order; intrinsics fx, fy, cx, cy). o.reg
+// and o.last are not written. With `order`, the forward records per tile the tile-list positions of
+// every composited step, pixel by pixel in row-major order within the tile; the backward (in.Tf,
+// in.last and in.g_reg are not read) replays them and fills G as backward_tiles does.
+struct PixelOrder {
+  const int32_t* pos;   // the tiles' records one after another
+  const int64_t* off;   // [tiles + 1] where each tile's records start
+  const int32_t* cnt;   // [H, W] composited steps per pixel (the forward's n_contrib)
+};
 int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
-                            bool gef, bool soft);
+                            bool gef, bool soft, std::vector<std::vector<int32_t>>* order);
+void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrder& order, bool gef, bool soft);
 
 }  // namespace smgs

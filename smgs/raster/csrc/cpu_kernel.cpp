@@ -234,6 +234,52 @@ static Scene make_scene(const at::Tensor& pk, const at::Tensor& box, const at::T
   return sc;
 }
 
+// Per splat the sum of its tile-list entries' gradient rows E [L, padded(S)], in a fixed order (so
+// gradients do not depend on the number of threads), back in input order: dL/d[means2d, conics,
+// opacities, colors, depths, alpha, beta, gamma, reg_values] over the N input splats (zeros for
+// splats that reach no pixel).
+static std::vector<at::Tensor> splat_grads(const at::Tensor& E, const at::Tensor& ids, const at::Tensor& soff,
+                                           const at::Tensor& spos, int64_t N, int nch, int R, int M, int S,
+                                           int nthreads) {
+  const int Sp = padded(S);
+  auto f32 = at::TensorOptions().dtype(at::kFloat);
+  at::Tensor gm = at::zeros({N, 2}, f32), gc = at::zeros({N, 3}, f32), go = at::zeros({N}, f32),
+                gcol = at::zeros({N, nch}, f32), gd = at::zeros({N}, f32), gal = at::zeros({N}, f32),
+                gbe = at::zeros({N}, f32), gga = at::zeros({N}, f32), grv = at::zeros({N, R}, f32);
+  const float* Ep = E.data_ptr<float>();
+  const int32_t* id = ids.data_ptr<int32_t>();
+  const int32_t* so = soff.data_ptr<int32_t>();
+  const int32_t* sp = spos.data_ptr<int32_t>();
+  float *pm = gm.data_ptr<float>(), *pc = gc.data_ptr<float>(), *po = go.data_ptr<float>(),
+        *pcol = gcol.data_ptr<float>(), *pd = gd.data_ptr<float>(), *pal = gal.data_ptr<float>(),
+        *pbe = gbe.data_ptr<float>(), *pga = gga.data_ptr<float>(), *prv = R ? grv.data_ptr<float>() : nullptr;
+    // contiguous chunks of splats, one gradient row of scratch per chunk
+  parallel_dynamic(nthreads, (M + 4095) / 4096, [&](int, int64_t chunk) {
+    std::vector<float> r(S);
+    for (int j = int(chunk) * 4096, je = std::min(M, j + 4096); j < je; ++j) {
+      std::fill(r.begin(), r.end(), 0.f);
+      for (int k = so[j]; k < so[j + 1]; ++k) {
+        const float* e = Ep + size_t(sp[k]) * Sp;
+        for (int c = 0; c < S; ++c) r[c] += e[c];
+      }
+      const int64_t i = id[j];  // rows are in depth order; back to input order
+      pm[2 * i] = r[P_MX];
+      pm[2 * i + 1] = r[P_MY];
+      pc[3 * i] = r[P_CA];
+      pc[3 * i + 1] = r[P_CB];
+      pc[3 * i + 2] = r[P_CC];
+      po[i] = r[P_O];
+      pd[i] = r[P_D];
+      pal[i] = r[P_AL];
+      pbe[i] = r[P_BE];
+      pga[i] = r[P_GA];
+      for (int c = 0; c < nch; ++c) pcol[i * nch + c] = r[P_COL + c];
+      for (int c = 0; c < R; ++c) prv[i * R + c] = r[P_COL + nch + c];
+    }
+  });
+  return {gm, gc, go, gcol, gd, gal, gbe, gga, grv};
+}
+
 // Returns [rgb, alpha, depth, reg, n_contrib, T_final, last, pairs, ids, pk, box, tile_off, tile_list,
 // splat_off, splat_pos].
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
@@ -272,13 +318,15 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   return {rgb, a, dep, reg, cnt, Tf, last, tp, P.ids, P.pk, P.box, P.toff, P.tlist, P.soff, P.spos};
 }
 
-// sort="per_pixel", forward only (cpu_pixel.cpp). coefs [N, 9] (smgs/raster/ray_depth.py), intr
-// (fx, fy, cx, cy). Returns [rgb, alpha, depth, n_contrib, T_final, pairs].
+// sort="per_pixel" (cpu_pixel.cpp). coefs [N, 9] (smgs/raster/ray_depth.py), intr (fx, fy, cx, cy).
+// Returns [rgb, alpha, depth, n_contrib, T_final, pairs, ids, pk, box, tile_off, tile_list, splat_off,
+// splat_pos, order, order_off]: with keep_order the pixels' composited steps (PixelOrder in
+// cpu_core.h; else empty), which backward_pixel reads with the tensors after `pairs`.
 std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
                                       at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
                                       at::Tensor bg, at::Tensor coefs, at::Tensor intr, int64_t W, int64_t H,
                                       bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
-                                      double t_min, int64_t window) {
+                                      double t_min, int64_t window, bool keep_order) {
   check_f32(means2d, "means2d");
   check_f32(conics, "conics");
   check_f32(opac, "opacities");
@@ -314,8 +362,40 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
              Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32);
   FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(), nullptr,
            nullptr, cnt.data_ptr<int32_t>()};
-  int64_t pairs = forward_pixel_tiles(sc, o, cs.data(), intr.data_ptr<float>(), int(window), gef, soft);
-  return {rgb, a, dep, cnt, Tf, at::full({1}, pairs, at::TensorOptions().dtype(at::kLong))};
+  std::vector<std::vector<int32_t>> order;
+  int64_t pairs = forward_pixel_tiles(sc, o, cs.data(), intr.data_ptr<float>(), int(window), gef, soft,
+                                      keep_order ? &order : nullptr);
+  // the tiles' records one after another
+  at::Tensor ooff = at::zeros({int64_t(order.size()) + 1}, at::TensorOptions().dtype(at::kLong));
+  int64_t* op = ooff.data_ptr<int64_t>();
+  for (size_t t = 0; t < order.size(); ++t) op[t + 1] = op[t] + int64_t(order[t].size());
+  at::Tensor opos = at::empty({op[order.size()]}, i32);
+  for (size_t t = 0; t < order.size(); ++t)
+    std::copy(order[t].begin(), order[t].end(), opos.data_ptr<int32_t>() + op[t]);
+  return {rgb, a, dep, cnt, Tf, at::full({1}, pairs, at::TensorOptions().dtype(at::kLong)), P.ids, P.pk, P.box,
+          P.toff, P.tlist, P.soff, P.spos, opos, ooff};
+}
+
+// Backward of forward_pixel (kept with keep_order): its recorded order replayed. Returns the
+// gradients as backward does (reg_values: none).
+std::vector<at::Tensor> backward_pixel(at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth, at::Tensor alpha_out,
+                                       at::Tensor depth_out, at::Tensor cnt, at::Tensor ids, at::Tensor pk,
+                                       at::Tensor box, at::Tensor toff, at::Tensor tlist, at::Tensor soff,
+                                       at::Tensor spos, at::Tensor order, at::Tensor order_off, at::Tensor bg,
+                                       int64_t N, int64_t nch, int64_t W, int64_t H, bool gef, bool soft, int64_t kmax,
+                                       bool solved, int64_t nthreads, double t_min) {
+  check_f32(g_rgb, "grad rgb");
+  check_f32(g_alpha, "grad alpha");
+  check_f32(g_depth, "grad depth");
+  TORCH_CHECK(order_off.numel() == toff.numel(), "backward_pixel needs the order of a forward_pixel with keep_order");
+  Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), 0, kmax, solved, 1.0, int(nthreads),
+                        t_min);
+  at::Tensor E = at::empty({tlist.numel(), padded(sc.S)}, at::TensorOptions().dtype(at::kFloat));
+  BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(), nullptr,
+           alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(), nullptr, nullptr};
+  const PixelOrder po{order.data_ptr<int32_t>(), order_off.data_ptr<int64_t>(), cnt.data_ptr<int32_t>()};
+  backward_pixel_tiles(sc, in, E.data_ptr<float>(), po, gef, soft);
+  return splat_grads(E, ids, soff, spos, N, int(nch), 0, sc.M, sc.S, int(nthreads));
 }
 
 // Returns dL/d[means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values] over the N
@@ -342,43 +422,7 @@ std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tenso
            R ? g_reg.data_ptr<float>() : nullptr, alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(),
            Tf.data_ptr<float>(), last.data_ptr<int32_t>()};
   backward_tiles(sc, in, E.data_ptr<float>(), gef, soft);
-  auto f32 = at::TensorOptions().dtype(at::kFloat);
-  at::Tensor gm = at::zeros({N, 2}, f32), gc = at::zeros({N, 3}, f32), go = at::zeros({N}, f32),
-                gcol = at::zeros({N, nch}, f32), gd = at::zeros({N}, f32), gal = at::zeros({N}, f32),
-                gbe = at::zeros({N}, f32), gga = at::zeros({N}, f32), grv = at::zeros({N, R}, f32);
-  const float* Ep = E.data_ptr<float>();
-  const int32_t* id = ids.data_ptr<int32_t>();
-  const int32_t* so = soff.data_ptr<int32_t>();
-  const int32_t* sp = spos.data_ptr<int32_t>();
-  float *pm = gm.data_ptr<float>(), *pc = gc.data_ptr<float>(), *po = go.data_ptr<float>(),
-        *pcol = gcol.data_ptr<float>(), *pd = gd.data_ptr<float>(), *pal = gal.data_ptr<float>(),
-        *pbe = gbe.data_ptr<float>(), *pga = gga.data_ptr<float>(), *prv = R ? grv.data_ptr<float>() : nullptr;
-  const int M = sc.M;
-  // contiguous chunks of splats, one gradient row of scratch per chunk
-  parallel_dynamic(sc.nthreads, (M + 4095) / 4096, [&](int, int64_t chunk) {
-    std::vector<float> r(S);
-    for (int j = int(chunk) * 4096, je = std::min(M, j + 4096); j < je; ++j) {
-      std::fill(r.begin(), r.end(), 0.f);
-      for (int k = so[j]; k < so[j + 1]; ++k) {
-        const float* e = Ep + size_t(sp[k]) * Sp;
-        for (int c = 0; c < S; ++c) r[c] += e[c];
-      }
-      const int64_t i = id[j];  // rows are in depth order; back to input order
-      pm[2 * i] = r[P_MX];
-      pm[2 * i + 1] = r[P_MY];
-      pc[3 * i] = r[P_CA];
-      pc[3 * i + 1] = r[P_CB];
-      pc[3 * i + 2] = r[P_CC];
-      po[i] = r[P_O];
-      pd[i] = r[P_D];
-      pal[i] = r[P_AL];
-      pbe[i] = r[P_BE];
-      pga[i] = r[P_GA];
-      for (int c = 0; c < nch; ++c) pcol[i * nch + c] = r[P_COL + c];
-      for (int c = 0; c < R; ++c) prv[i * R + c] = r[P_COL + nch + c];
-    }
-  });
-  return {gm, gc, go, gcol, gd, gal, gbe, gga, grv};
+  return splat_grads(E, ids, soff, spos, N, int(nch), int(R), sc.M, sc.S, int(nthreads));
 }
 
 // Constants as compiled, for the test that they mirror smgs/raster/constants.py.
@@ -394,7 +438,8 @@ std::string isa() { return simd_isa(); }
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &smgs::forward, "smgs CPU splat compositing, forward");
   m.def("backward", &smgs::backward, "smgs CPU splat compositing, backward");
-  m.def("forward_pixel", &smgs::forward_pixel, "smgs CPU splat compositing in per-pixel order, forward only");
+  m.def("forward_pixel", &smgs::forward_pixel, "smgs CPU splat compositing in per-pixel order, forward");
+  m.def("backward_pixel", &smgs::backward_pixel, "smgs CPU splat compositing in per-pixel order, backward");
   m.def("constants", &smgs::constants, "numeric conventions as compiled");
   m.def("isa", &smgs::isa, "the SIMD path compiled in");
 }

@@ -1,11 +1,18 @@
-// Per-pixel order on the CPU (sort="per_pixel"), forward only: StopThePop's bounded re-sorting
-// window. Each pixel walks its tile's list in the global (centre depth) order; every splat that
-// reaches it enters a window keyed by its peak depth along the pixel's ray (peak_depth in
-// splat_math.h); when the window holds `window` entries its nearest is composited (window 1 is the
-// global order). Equal keys
-// leave in arrival, i.e. global, order. A window at least as long as a pixel's list is the exact
-// per-pixel sort of smgs/raster/reference.py. One pixel at a time (no SIMD lanes: each pixel takes
-// its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one pixel.
+// Per-pixel order on the CPU (sort="per_pixel"): StopThePop's bounded re-sorting window. Each
+// pixel walks its tile's list in the global (centre depth) order; every splat that reaches it
+// enters a window keyed by its peak depth along the pixel's ray (peak_depth in splat_math.h); when
+// the window holds `window` entries its nearest is composited (window 1 is the global order). Equal
+// keys leave in arrival, i.e. global, order. A window at least as long as a pixel's list is the
+// exact per-pixel sort of smgs/raster/reference.py. One pixel at a time (no SIMD lanes: each pixel
+// takes its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one
+// pixel.
+//
+// Backward, every mode: the forward records each pixel's composited steps (their tile-list
+// positions, in its order); the backward replays them through the forward's step (the same code, so
+// the same values), keeping the state before each in per-thread scratch; the sweep back to front
+// (the adjoints of splat_math.h, as bwd_block in cpu_tiles.h) adds each step's gradients to the row
+// of its tile-list entry (cpu_kernel.cpp sums the rows per splat in a fixed order, as for the global
+// order), so the gradients do not depend on the thread count. The order carries no gradient.
 #include "cpu_core.h"
 #include "parallel.h"
 
@@ -15,7 +22,7 @@ namespace {
 
 struct Entry {
   float t, q, a;
-  int row;
+  int pos;   // position in the tile's list (its row of pk is lst[pos])
 };
 
 struct Pixel {
@@ -70,19 +77,48 @@ inline void step(const Scene& sc, Pixel& px, float* C, const float* s, const Ent
   ++px.cnt;
 }
 
-// Composite the window's nearest entry (the first of equal keys) and remove it.
-template <bool SOFT>
-inline void pop(const Scene& sc, Pixel& px, float* C, std::vector<Entry>& win) {
+// Hand the window's nearest entry (the first of equal keys) to `take` and remove it.
+template <class Take>
+inline void pop(std::vector<Entry>& win, Take&& take) {
   size_t m = 0;
   for (size_t k = 1; k < win.size(); ++k)
     if (win[k].t < win[m].t) m = k;
   const Entry e = win[m];
   win.erase(win.begin() + m);   // keeps arrival order among the rest
-  step<SOFT>(sc, px, C, sc.pk + size_t(e.row) * sc.S, e);
+  take(e);
+}
+
+// One pixel's splats in its windowed order: `take(entry)` for each, until it returns false (the
+// pixel is done). Returns the pairs evaluated.
+template <bool GEF, class Take>
+inline int64_t walk_pixel(const Scene& sc, const int32_t* lst, int n, int x, int y, const float* coefs,
+                          const float* intr, int window, std::vector<Entry>& win, Take&& take) {
+  const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
+  const float u = (fx - intr[2]) / intr[0], v = (fy - intr[3]) / intr[1];
+  win.clear();
+  bool live = true;
+  int64_t pairs = 0;
+  auto pass = [&](const Entry& e) { live = take(e); };
+  for (int i = 0; i < n && live; ++i) {
+    const int row = lst[i];
+    const int32_t* b = sc.box + 4 * size_t(row);
+    if (x < b[0] || x > b[1] || y < b[2] || y > b[3]) continue;
+    const float* s = sc.pk + size_t(row) * sc.S;
+    ++pairs;
+    const Quad<float> k = splat_quad(fx, fy, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
+    if (!(k.q <= kQMax)) continue;
+    const float a = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]).a;
+    if (!(a >= kAlphaMin)) continue;
+    win.push_back({peak_depth(u, v, coefs + size_t(row) * 9, s[P_D]), k.q, a, i});
+    if (int(win.size()) >= window) pop(win, pass);
+  }
+  while (!win.empty() && live) pop(win, pass);
+  return pairs;
 }
 
 template <bool GEF, bool SOFT>
-int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window) {
+int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
+                    std::vector<std::vector<int32_t>>* order) {
   const int nt = sc.tiles_x * sc.tiles_y;
   const int nw = workers(sc.nthreads, nt);
   std::vector<int64_t> pairs(nw, 0);
@@ -93,27 +129,16 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
     const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
     const int32_t* lst = sc.tlist + sc.toff[t];
     const int n = sc.toff[t + 1] - sc.toff[t];
+    std::vector<int32_t>* taken = order ? &(*order)[t] : nullptr;
     for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
-        const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
-        const float u = (fx - intr[2]) / intr[0], v = (fy - intr[3]) / intr[1];
         Pixel px;
         std::fill(C.begin(), C.end(), 0.f);
-        win.clear();
-        for (int i = 0; i < n && !px.done; ++i) {
-          const int row = lst[i];
-          const int32_t* b = sc.box + 4 * size_t(row);
-          if (x < b[0] || x > b[1] || y < b[2] || y > b[3]) continue;
-          const float* s = sc.pk + size_t(row) * sc.S;
-          ++pairs[w];
-          const Quad<float> k = splat_quad(fx, fy, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
-          if (!(k.q <= kQMax)) continue;
-          const float a = splat_absorb<GEF>(k.q, s[P_O], s[P_AL]).a;
-          if (!(a >= kAlphaMin)) continue;
-          win.push_back({peak_depth(u, v, coefs + size_t(row) * 9, s[P_D]), k.q, a, row});
-          if (int(win.size()) >= window) pop<SOFT>(sc, px, C.data(), win);
-        }
-        while (!win.empty() && !px.done) pop<SOFT>(sc, px, C.data(), win);
+        pairs[w] += walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
+          step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
+          if (taken && !px.done) taken->push_back(e.pos);
+          return !px.done;
+        });
         const size_t pix = size_t(y) * sc.W + x;
         for (int c = 0; c < sc.nch; ++c) o.rgb[pix * sc.nch + c] = C[c] + (sc.bg ? px.T * sc.bg[c] : 0.f);
         o.alpha[pix] = px.A;
@@ -127,14 +152,144 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
   return total;
 }
 
+// A composited step of one pixel, for its backward: the tile-list position and the state before it
+// (the colour state before it, which only a softmax step's adjoint reads, is kept beside).
+struct Taken {
+  int pos;
+  Pixel pre;
+};
+
+// G: gradient rows (stride Sp, pk layout) of the tile-list entries; each tile writes only its own.
+// The adjoint of step<SOFT> per composited splat, back to front (as bwd_block in cpu_tiles.h).
+template <bool GEF, bool SOFT>
+void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrder& order) {
+  const int nt = sc.tiles_x * sc.tiles_y;
+  const int Sp = padded(sc.S), nch = sc.nch, nc = nch + 1;
+  parallel_dynamic(sc.nthreads, nt, [&](int, int64_t t) {
+    std::vector<Taken> taken;
+    std::vector<float> C(nc), Cpre, gC(nc);
+    const int tx0 = int(t % sc.tiles_x) * kTileSize, ty0 = int(t / sc.tiles_x) * kTileSize;
+    const int32_t* lst = sc.tlist + sc.toff[t];
+    const int n = sc.toff[t + 1] - sc.toff[t];
+    float* Gt = G + size_t(sc.toff[t]) * Sp;
+    std::fill(Gt, Gt + size_t(n) * Sp, 0.f);
+    const int32_t* ord = order.pos + order.off[t];   // the tile's pixels' composited steps, in order
+    for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
+      for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
+        const size_t pix = size_t(y) * sc.W + x;
+        const float fx = float(x) + kPixelCenter, fy = float(y) + kPixelCenter;
+        // the forward's steps again, in its order, keeping the state before each
+        taken.clear();
+        Cpre.clear();
+        std::fill(C.begin(), C.end(), 0.f);
+        Pixel px;
+        for (int m = order.cnt[pix]; m > 0; --m, ++ord) {
+          const float* s = sc.pk + size_t(lst[*ord]) * sc.S;
+          const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], Factor{s[P_CA], s[P_CB], s[P_CC]});
+          const float a = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]).a;
+          taken.push_back({*ord, px});
+          if (SOFT) Cpre.insert(Cpre.end(), C.begin(), C.end());
+          step<SOFT>(sc, px, C.data(), s, Entry{0.f, q.q, a, *ord});
+        }
+        if (taken.empty()) continue;
+        // dL/d outputs -> dL/d final state: rgb = C + T·bg, alpha = A, depth = C_d / A
+        float gT = 0.f;
+        for (int c = 0; c < nch; ++c) {
+          gC[c] = in.g_rgb[pix * nch + c];
+          if (sc.bg) gT += gC[c] * sc.bg[c];
+        }
+        const float Aout = in.alpha[pix];
+        gC[nch] = Aout > 0.f ? in.g_depth[pix] / Aout : 0.f;
+        float gA = in.g_alpha[pix] - (Aout > 0.f ? in.g_depth[pix] * in.depth[pix] / Aout : 0.f);
+        float gdp = 0.f, gpp = 0.f;   // adjoints of the running means (softmax head only)
+        for (size_t k = taken.size(); k-- > 0;) {
+          const int pos = taken[k].pos;
+          const Pixel& P = taken[k].pre;
+          const float* s = sc.pk + size_t(lst[pos]) * sc.S;
+          const Factor f{s[P_CA], s[P_CB], s[P_CC]};
+          const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], f);
+          const Absorb<float> ab = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]);
+          const float a = ab.a, p = -q.q, d = s[P_D];
+          const bool head = SOFT && P.cnt < sc.kmax, soft = head && P.A > 0.f;
+          SoftFwd<float> sf;
+          float aT = a * P.T, r = 1.f, wk = 1.f;   // a head step at A = 0 has wk = 1 (step<true>)
+          if (soft) {
+            sf = softmax_fwd(P.T, P.A, P.dp, P.pp, a, p, d, s[P_BE], s[P_GA], sc.solved);
+            aT = sf.aT;
+            r = sf.r;
+            wk = sf.wk;
+          }
+          float* g = Gt + size_t(pos) * Sp;
+          // adjoint of C' = C·r + c·aT (depth is channel nch)
+          float g_aT = 0.f, g_r = 0.f;
+          for (int c = 0; c < nch; ++c) {
+            g_aT += gC[c] * s[P_COL + c];
+            g[P_COL + c] += gC[c] * aT;
+          }
+          g_aT += gC[nch] * d;
+          float g_d = gC[nch] * aT, g_p = 0.f, g_wk = 0.f, g_a, gTpre;
+          if (soft) {
+            const float* cp = Cpre.data() + k * nc;
+            for (int c = 0; c < nc; ++c) {
+              g_r += gC[c] * cp[c];
+              gC[c] *= r;
+            }
+          }
+          if (head) {   // adjoint of the running means d' = d + (d_k - d)·wk, p' likewise
+            g_wk = gdp * (d - P.dp) + gpp * (p - P.pp);
+            g_d += gdp * wk;
+            g_p = gpp * wk;
+            gdp -= gdp * wk;
+            gpp -= gpp * wk;
+          }
+          if (soft) {
+            const SoftGrad<float> sg = softmax_bwd(sf, P.T, P.A, P.dp, P.pp, a, p, s[P_BE], s[P_GA], sc.solved, gT,
+                                                   gA, g_r, g_aT, g_wk);
+            gTpre = sg.T;
+            gA = sg.A;
+            g_a = sg.a;
+            g_p += sg.p;
+            g_d += sg.d;
+            gdp += sg.dp;
+            gpp += sg.pp;
+            g[P_BE] += sg.beta;
+            g[P_GA] += sg.gamma;
+          } else if (SOFT) {
+            float gAv;
+            vanilla_coef_bwd(P.T, P.A, a, gT, gA, g_aT, g_wk, gTpre, gAv, g_a);
+            gA = gAv;
+          } else {
+            vanilla_step_bwd(P.T, a, g_aT + gA, gT, gTpre, g_a);   // A' = A + aT: dL/dA passes through
+          }
+          gT = gTpre;
+          g[P_D] += g_d;
+          const KernGrad<float> kg = splat_kernel_bwd<GEF>(q, ab, f, s[P_O], s[P_AL], g_a, g_p);
+          g[P_MX] += kg.mx;
+          g[P_MY] += kg.my;
+          g[P_CA] += kg.ca;
+          g[P_CB] += kg.cb;
+          g[P_CC] += kg.cc;
+          g[P_O] += kg.o;
+          if (GEF) g[P_AL] += kg.alpha;
+        }
+      }
+  });
+}
+
 }  // namespace
 
 int64_t forward_pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const float* intr, int window,
-                            bool gef, bool soft) {
-  if (gef) return soft ? pixel_tiles<true, true>(sc, o, coefs, intr, window)
-                       : pixel_tiles<true, false>(sc, o, coefs, intr, window);
-  return soft ? pixel_tiles<false, true>(sc, o, coefs, intr, window)
-              : pixel_tiles<false, false>(sc, o, coefs, intr, window);
+                            bool gef, bool soft, std::vector<std::vector<int32_t>>* order) {
+  if (order) order->assign(size_t(sc.tiles_x) * sc.tiles_y, {});
+  if (gef) return soft ? pixel_tiles<true, true>(sc, o, coefs, intr, window, order)
+                       : pixel_tiles<true, false>(sc, o, coefs, intr, window, order);
+  return soft ? pixel_tiles<false, true>(sc, o, coefs, intr, window, order)
+              : pixel_tiles<false, false>(sc, o, coefs, intr, window, order);
+}
+
+void backward_pixel_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrder& order, bool gef, bool soft) {
+  if (gef) soft ? pixel_bwd_tiles<true, true>(sc, in, G, order) : pixel_bwd_tiles<true, false>(sc, in, G, order);
+  else soft ? pixel_bwd_tiles<false, true>(sc, in, G, order) : pixel_bwd_tiles<false, false>(sc, in, G, order);
 }
 
 }  // namespace smgs

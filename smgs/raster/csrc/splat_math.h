@@ -221,6 +221,14 @@ SMGS_HD inline void vanilla_coef_bwd(V T, V A, V a, V g_Tn, V g_An, V g_aT, V g_
   g_T = g_aT * a + g_Tn * (V(1.0f) - a);
 }
 
+// Adjoint of the plain 3DGS step C' = C + c·aT, A' = A + aT, T' = T(1 - a), aT = a·T, where the
+// running means are not needed (no softmax step follows): dL/d(aT, T') -> dL/dT, dL/da.
+template <class V>
+SMGS_HD inline void vanilla_step_bwd(V T, V a, V g_aT, V g_Tn, V& g_T, V& g_a) {
+  g_a = g_aT * T - g_Tn * T;
+  g_T = g_aT * a + g_Tn * (V(1.0f) - a);
+}
+
 // Softmax-competition step (Alg. 1 lines 7-27), the stable forms of reference.softmax_step.
 // Valid where A > 0 and a > 0 (the caller masks other lanes). `solved` selects eq. (15) solved
 // (default) or as printed in line 14.
