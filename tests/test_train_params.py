@@ -142,3 +142,20 @@ def test_presets_apply_to_their_section_at_any_depth_and_alone():
     with pytest.raises(TypeError, match=r"densify\.cap='many': expected an int"):
         from_dict(TrainConfig, {"densify": {"budget": "cap", "cap": "many"}})
     assert (TrainConfig().k_max, TrainConfig().t_min) == (K.DEFAULT_K_MAX, K.T_MIN)
+
+
+def test_random_init_stays_inside_the_ring_of_cameras():
+    """Without SfM points the cube of random points is 3DGS's (±1.3 world units for a camera
+    extent of ~4.9): on a ring of cameras it lies well inside the ring. Read as ±1.3 extents it
+    reached past the cameras and left points right in front of every lens (fox learned nothing)."""
+    from smgs.data.procedural import make_procedural_scene
+    from smgs.train.trainer import Trainer
+
+    scene = make_procedural_scene(n_views=8, size=(32, 24), n_points=10)
+    cfg = dataclasses.replace(TrainConfig(mode="3dgs", steps=1),
+                              gaussians=GaussianConfig(init="random", n_random=2000))
+    pts = Trainer(scene, cfg, device="cpu").gaussians.means.detach().double()
+    centres = torch.stack([v.camera.center.double() for v in scene.train])
+    nearest = torch.cdist(pts, centres).min().item()
+    ring = (centres - centres.mean(0)).norm(dim=1).min().item()
+    assert nearest > 0.5 * ring, (nearest, ring)
