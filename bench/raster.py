@@ -137,10 +137,13 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global"):
     leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)  # time finished work
 
+    # sort only where it is not the default: bench/ab.py runs this file against older trees too
+    extra = {} if sort == "global" else {"sort": sort}
+
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
                          alpha=p["alpha"], beta=p["beta"], gamma=p["gamma"], mode=mode, k_max=k_max,
-                         backend=backend, sort=sort)
+                         backend=backend, **extra)
 
     def fwd():
         with torch.no_grad():

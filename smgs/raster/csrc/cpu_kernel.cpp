@@ -280,6 +280,25 @@ static std::vector<at::Tensor> splat_grads(const at::Tensor& E, const at::Tensor
   return {gm, gc, go, gcol, gd, gal, gbe, gga, grv};
 }
 
+// The splat inputs both forwards take: float32, contiguous, fewer than 2^24 splats.
+static void check_splats(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                         const at::Tensor& colors, const at::Tensor& depths, const at::Tensor& alpha,
+                         const at::Tensor& beta, const at::Tensor& gamma, const at::Tensor& bg, bool gef,
+                         bool soft) {
+  check_f32(means2d, "means2d");
+  check_f32(conics, "conics");
+  check_f32(opac, "opacities");
+  check_f32(colors, "colors");
+  check_f32(depths, "depths");
+  TORCH_CHECK(means2d.size(0) < (int64_t(1) << 24), "the cpu backend handles fewer than 2^24 splats");
+  if (gef) check_f32(alpha, "alpha");
+  if (soft) {
+    check_f32(beta, "beta");
+    check_f32(gamma, "gamma");
+  }
+  if (bg.numel()) check_f32(bg, "background");
+}
+
 // Returns [rgb, alpha, depth, reg, n_contrib, T_final, last, pairs, ids, pk, box, tile_off, tile_list,
 // splat_off, splat_pos].
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
@@ -287,19 +306,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
                                    at::Tensor beta, at::Tensor gamma, at::Tensor bg, at::Tensor regv,
                                    int64_t W, int64_t H, bool gef, bool soft, int64_t kmax, bool solved,
                                    double reg_scale, int64_t nthreads, double t_min) {
-  check_f32(means2d, "means2d");
-  check_f32(conics, "conics");
-  check_f32(opac, "opacities");
-  check_f32(colors, "colors");
-  check_f32(depths, "depths");
-  const int64_t N = means2d.size(0);
-  TORCH_CHECK(N < (int64_t(1) << 24), "the cpu backend handles fewer than 2^24 splats");
-  if (gef) check_f32(alpha, "alpha");
-  if (soft) {
-    check_f32(beta, "beta");
-    check_f32(gamma, "gamma");
-  }
-  if (bg.numel()) check_f32(bg, "background");
+  check_splats(means2d, conics, opac, colors, depths, alpha, beta, gamma, bg, gef, soft);
   if (regv.numel()) check_f32(regv, "reg_values");
   const int nch = int(colors.size(1));
   const int R = regv.numel() ? int(regv.size(1)) : 0;
@@ -327,24 +334,13 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
                                       at::Tensor bg, at::Tensor coefs, at::Tensor intr, int64_t W, int64_t H,
                                       bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
                                       double t_min, int64_t window, bool keep_order) {
-  check_f32(means2d, "means2d");
-  check_f32(conics, "conics");
-  check_f32(opac, "opacities");
-  check_f32(colors, "colors");
-  check_f32(depths, "depths");
+  check_splats(means2d, conics, opac, colors, depths, alpha, beta, gamma, bg, gef, soft);
   check_f32(coefs, "coefs");
   check_f32(intr, "intrinsics");
   const int64_t N = means2d.size(0);
-  TORCH_CHECK(N < (int64_t(1) << 24), "the cpu backend handles fewer than 2^24 splats");
   TORCH_CHECK(coefs.dim() == 2 && coefs.size(0) == N && coefs.size(1) == 9, "coefs must be [N, 9]");
   TORCH_CHECK(intr.numel() == 4, "intrinsics must be (fx, fy, cx, cy)");
   TORCH_CHECK(window >= 1, "window must be >= 1");
-  if (gef) check_f32(alpha, "alpha");
-  if (soft) {
-    check_f32(beta, "beta");
-    check_f32(gamma, "gamma");
-  }
-  if (bg.numel()) check_f32(bg, "background");
   const int nch = int(colors.size(1));
   const at::Tensor none = at::empty({0}, at::TensorOptions().dtype(at::kFloat));
   Prepared P = prepare(means2d, conics, opac, colors, depths, alpha, beta, gamma, none, int(W), int(H), int(nthreads));
