@@ -137,6 +137,17 @@ class Method(Protocol):
         ...
 
 
+@runtime_checkable
+class LeadingSplats(Protocol):
+    """Optional, beside ``Method``: a method that can say which of its primitives lead each pixel
+    renders with ``RenderOutput.leaders`` filled (``smgs.raster.rasterize(leaders=True)``). The view
+    consistency's popping ratio uses it; for a method without it that figure is reported missing."""
+
+    def render_leaders(self, camera: Camera) -> RenderOutput:
+        """``render(camera)`` with the leading-splat map (no gradients)."""
+        ...
+
+
 @dataclass(frozen=True)
 class MethodSpec:
     """A registry entry: a name, the class as a lazily imported "module:Class" string (or the

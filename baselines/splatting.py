@@ -88,6 +88,11 @@ class GaussianSplatting:
     def render(self, camera: Camera) -> RenderOutput:
         return self.trainer.render(camera)
 
+    @torch.no_grad()
+    def render_leaders(self, camera: Camera) -> RenderOutput:
+        """``render`` with the leading-splat map (``LeadingSplats``)."""
+        return self.trainer.render(camera, leaders=True)
+
     def num_gaussians(self) -> int:
         return len(self.trainer.gaussians)
 

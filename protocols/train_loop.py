@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from baselines.method import LeadingSplats
 from protocols.cell_scene import load_scene_for
 from protocols.sections import EvalConfig
 from protocols.ply import after_run, make_method
@@ -289,9 +290,9 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig) -> dict:
     if max_w and traj[0].width > max_w:
         traj = [c.scaled(max_w / c.width) for c in traj]
 
-    def render(cam):
-        out = method.render(cam)
-        return out.rgb, out.depth
+    def render(cam):   # with the leading-splat map where the method gives one (the popping ratio)
+        out = method.render_leaders(cam) if isinstance(method, LeadingSplats) else method.render(cam)
+        return out.rgb, out.depth, out.leaders
 
     row = consistency_row(render, traj, scene=scene.name, method=method.name,
                           test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow)

@@ -134,7 +134,8 @@ def make_tree(root: Path, images: bool = False) -> Path:
             if scene == "bicycle" and b == "full":
                 r.consistency = {"scene": scene, "method": m, "psnr": p, "mse": 0.016 if m == "softmax_gs" else 0.017,
                                  "flip": 0.031 if m == "softmax_gs" else 0.032, "flip_name": "flip",
-                                 "estimator": "geometric", "step": 7, "mask": "per-method"}
+                                 "estimator": "geometric", "step": 7, "mask": "per-method",
+                                 "pop_ratio": 1.3 if m == "softmax_gs" else 41.0, "popped_fraction": 0.012}
                 r.config["eval"] = {"consistency": True}
             put(r)
     put(RunResult(method="softmax_gs", dataset="tandt", scene="train", budget="full", seed=0, status="skipped",

@@ -129,3 +129,68 @@ def test_table4_row(trajectory, tmp_path):
     traj_path = tmp_path / "trajectory.json"
     trajectory.save(traj_path)
     assert json.loads(traj_path.read_text())["n_between"] == 8
+
+
+def leader_render(mode: str, backend: str = "reference"):
+    def render(cam: Camera):
+        return rasterize(MEANS, QUATS, SCALES, OPAC, COLORS, cam, alpha=torch.ones(2), beta=torch.full((2,), 5.0),
+                         gamma=torch.ones(2), mode=mode, backend=backend, leaders=True)
+
+    return render
+
+
+def test_popping_ratio_where_the_leading_splats_swap(trajectory):
+    """The pair crosses its depth-order flip: under 3DGS the pixels whose two leading splats swap
+    carry the error; under Softmax-GS they cost about what the other pixels cost. Renders without
+    the leading-splat map leave the ratio missing, with why."""
+    renders = {"3dgs": leader_render("3dgs"), "softmax_gs": leader_render("softmax_gs"),
+               "no_map": splat_render("3dgs")}
+    res = score_consistency(renders, trajectory, steps=(7, 1), border=8, quantize=False)
+    for s in (1, 7):
+        v, sm = res["3dgs"][s], res["softmax_gs"][s]
+        assert 0 < v.popped_fraction < 0.5 and 0 < sm.popped_fraction < 0.5
+        assert v.pop_ratio > 20, (s, v.pop_ratio)
+        assert sm.pop_ratio < 5, (s, sm.pop_ratio)
+        assert isinstance(res["no_map"][s].pop_ratio, Missing)
+        assert "leading-splat map" in res["no_map"][s].pop_ratio.reason
+        assert json.loads(json.dumps(v.to_json()))["pop_ratio"] == v.pop_ratio
+    # only the pair across the flip (4, 5) has popped pixels at step 1
+    popped = {p.i: p.pop.popped for p in res["3dgs"][1].per_pair}
+    assert popped[4] > 0 and all(n == 0 for i, n in popped.items() if i != 4)
+
+
+def test_no_flip_no_popped_pixel(short_trajectory):
+    """-1° … +1° of a pair far apart in depth: the leaders never swap; the ratio is missing, said why."""
+    far = MEANS.clone()
+    far[1, 2] = 0.8
+
+    def render(cam):
+        return rasterize(far, QUATS, SCALES, OPAC, COLORS, cam, mode="3dgs", backend="reference", leaders=True)
+
+    sc = score_consistency({"3dgs": render}, short_trajectory, steps=(1,), border=8, quantize=False)["3dgs"][1]
+    assert sc.popped_fraction == 0.0
+    assert isinstance(sc.pop_ratio, Missing) and "swapped" in sc.pop_ratio.reason
+
+
+def test_leader_warp_and_swap_by_hand():
+    import numpy as np
+
+    from smgs.metrics.consistency.leaders import pair_pop, pooled_ratio, swapped, warp_leaders
+
+    src = np.full((4, 5, 2), -1, dtype=np.int64)
+    src[1, 2] = (7, 3)
+    flow = np.zeros((4, 5, 2), np.float32)
+    flow[..., 0] = 1.0                          # target pixel p shows the source at p + (1, 0)
+    warped = warp_leaders(src, flow)
+    assert warped[1, 1].tolist() == [7, 3] and warped[1, 2].tolist() == [-1, -1]
+    assert (warped[:, 4] == -1).all()           # outside the source
+    tgt = np.full((4, 5, 2), -1, dtype=np.int64)
+    tgt[1, 1] = (3, 7)
+    tgt[2, 2] = (3, 7)
+    assert swapped(warped, tgt).sum() == 1 and swapped(warped, tgt)[1, 1]
+    se = np.ones((4, 5))
+    se[1, 1] = 10.0
+    c = pair_pop(se, np.ones((4, 5), bool), src, tgt, flow)
+    assert (c.popped, c.rest) == (1, 19)
+    ratio, share = pooled_ratio([c, c])
+    assert ratio == pytest.approx(10.0) and share == pytest.approx(0.05)

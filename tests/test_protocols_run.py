@@ -129,6 +129,9 @@ def test_consistency_row_and_trajectory_recorded(tmp_path):
     c = r.consistency
     assert c["step"] == 7 and c["estimator"] == "geometric" and c["mask"] == "per-method"
     assert c["mse"] >= 0 and "psnr" in c  # 96x72: the 20 px border still leaves valid pixels
+    # the popping ratio from the leading-splat maps: a share of popped pixels, a ratio or why not
+    assert 0.0 <= c["popped_fraction"] < 1.0
+    assert isinstance(c["pop_ratio"], float) or "swapped" in c["pop_ratio"]["missing"]
     assert json.loads((run / "trajectory.json").read_text())
     assert r.diagnostics["metrics_on_8bit"] is True
     assert r.lpips_net.endswith("3dgs-input")

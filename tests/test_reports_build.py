@@ -134,6 +134,8 @@ def test_tables_3_4_5(report):
     t4 = section(md, "Table 4")
     line = row(t4, "| bicycle | Softmax-GS |")
     assert "**0.0160**" in line and "0.031" in line and "geometric" in line
+    assert "**1.30**" in line and "| 1.20 |" in line               # Pop7 (lower is better), Popped %
+    assert "41.00" in row(t4, "| bicycle | 3D GS |") and "leading splats swapped order" in t4
     assert "RAFT" in t4 and "own valid mask" in t4
     t5 = section(md, "Table 5")
     line = row(t5, "| garden | Softmax-GS |")

@@ -116,6 +116,22 @@ def _per_pixel_backend(device: torch.device, dtype: torch.dtype, reg_values: tor
     return "cpu" if reg_values is None and backend_available("cpu", device, dtype) else "reference"
 
 
+def _on_host(*args, **kwargs) -> RenderOutput:
+    """``rasterize_splats`` on host copies of its tensors (no gradients), the outputs moved back to
+    the inputs' device: for what the CUDA backend has no kernel for."""
+    device = args[0].device
+    host = lambda t: t.detach().cpu() if isinstance(t, torch.Tensor) else t  # noqa: E731
+    rd = kwargs.get("ray_depth")
+    if rd is not None:
+        kwargs["ray_depth"] = RayDepth(host(rd.coefs), rd.fx, rd.fy, rd.cx, rd.cy)
+    with torch.no_grad():
+        out = rasterize_splats(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()})
+    move = lambda t: None if t is None else t.to(device)  # noqa: E731
+    return RenderOutput(rgb=move(out.rgb), alpha=move(out.alpha), depth=move(out.depth),
+                        stats=RenderStats(move(out.stats.n_contrib), out.stats.pairs_evaluated, out.stats.k_max),
+                        reg=move(out.reg), leaders=move(out.leaders))
+
+
 def rasterize_splats(
     means2d: torch.Tensor,
     conics: torch.Tensor,
@@ -136,6 +152,7 @@ def rasterize_splats(
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
     ray_depth: RayDepth | None = None,
+    leaders: bool = False,
 ) -> RenderOutput:
     """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
 
@@ -151,7 +168,10 @@ def rasterize_splats(
     splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``:
     exactly on the reference backend, through a re-sorting window of ``constants.SORT_WINDOW``
     splats on the cpu backend (no ``reg_values``; ``auto`` picks it wherever it applies), not on
-    cuda.
+    cuda. ``leaders``: the output's ``leaders`` map too (``RenderOutput``; for the view-consistency
+    metric): the cpu backend renders it through its per-pixel kernel (no ``reg_values``), cuda has
+    no such kernel, so there the splats are composited on host copies (cpu, else reference) and the
+    outputs moved back, without gradients.
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
@@ -170,8 +190,14 @@ def rasterize_splats(
         if backend == "auto":
             backend = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
     name = resolve_backend(backend, means2d.device, means2d.dtype)
+    if leaders and name == "cuda":
+        return _on_host(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
+                        mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
+                        reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=True)
     fn = _load_backend(name)
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
+    if leaders:
+        extra["leaders"] = True
     return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
               mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
               reg_depth_scale=reg_depth_scale, t_min=t_min, **extra)
@@ -200,6 +226,7 @@ def rasterize(
     clamp_sh_colors: bool = True,
     t_min: float = K.T_MIN,
     sort: str = "global",
+    leaders: bool = False,
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
 
@@ -211,6 +238,8 @@ def rasterize(
     ``"per_pixel"`` orders each pixel's splats by the depth along its ray where the 3D Gaussian's
     response peaks (StopThePop; ``smgs.raster.ray_depth``; backends as ``rasterize_splats``). The
     order is not differentiated; the compositing and its gradients are those of the mode.
+    ``leaders``: the output's ``leaders`` map too, as indices of the Gaussians given here
+    (``rasterize_splats`` says how each backend renders it).
     """
     check_sort(sort)
     n = means3d.shape[0]
@@ -248,6 +277,8 @@ def rasterize(
                            pick(alpha), pick(beta), pick(gamma), camera.width, camera.height,
                            mode=mode, k_max=k_max, background=background, backend=backend, eq15=eq15,
                            reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale, t_min=t_min,
-                           ray_depth=rd)
+                           ray_depth=rd, leaders=leaders)
+    if out.leaders is not None:   # projected index -> the caller's index
+        out.leaders = torch.where(out.leaders >= 0, ids[out.leaders.clamp_min(0)], out.leaders)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)
     return out

@@ -94,29 +94,30 @@ class _RasterizePixelCPU(torch.autograd.Function):
     """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp): inputs as
     ``_RasterizeCPU`` without reg_values, then the coefficients and intrinsics of the peak depths
     and the settings. Where a gradient is needed the forward records each pixel's composited steps
-    in its order (the order carries no gradient), and the backward replays them."""
+    in its order (the order carries no gradient), and the backward replays them. With
+    ``lead_alpha >= 0`` it also returns the leading-splat map (else an empty tensor)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, coefs, intr,
-                settings: CompositeSettings, window: int):
+                settings: CompositeSettings, window: int, lead_alpha: float):
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
         st = settings
         (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos, order,
-         order_off) = extension().forward_pixel(
+         order_off, leaders) = extension().forward_pixel(
             means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background), coefs,
             intr, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved, torch.get_num_threads(),
-            st.t_min, window, any(ctx.needs_input_grad[:9]))
+            st.t_min, window, any(ctx.needs_input_grad[:9]), lead_alpha)
         ctx.save_for_backward(alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off,
                               opt(background))
         ctx.settings = st
         ctx.n_splats = means2d.shape[0]
         ctx.n_channels = colors.shape[1]
-        ctx.mark_non_differentiable(cnt, pairs, t_final)
-        return rgb, alpha_out, depth, cnt, pairs, t_final
+        ctx.mark_non_differentiable(cnt, pairs, t_final, leaders)
+        return rgb, alpha_out, depth, cnt, pairs, t_final, leaders
 
     @staticmethod
-    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t):
+    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t, _g_lead):
         alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
@@ -124,21 +125,33 @@ class _RasterizePixelCPU(torch.autograd.Function):
             g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, ids, pk, box, toff, tlist, soff, spos, order, order_off,
             bg, ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
             torch.get_num_threads(), st.t_min)
-        # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window
-        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 4
+        # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window,
+        # lead_alpha
+        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 5
 
 
-def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth, window: int) -> RenderOutput:
-    """sort="per_pixel" through the re-sorting window (csrc/cpu_pixel.cpp), with gradients."""
+def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None, window: int,
+               lead_alpha: float | None) -> RenderOutput:
+    """The per-pixel kernel (csrc/cpu_pixel.cpp), with gradients: sort="per_pixel" through the
+    re-sorting window, or (``ray_depth`` None) the global order, for the leading-splat map: zero
+    peak-depth coefficients make every key the centre depth, which the window keeps in order."""
     means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, reg_values = args
+    what = "sort='per_pixel'" if ray_depth is not None else "leaders=True"
     if reg_values is not None:
-        raise ValueError("sort='per_pixel' on the cpu backend has no variance-regulariser sums (reg_values); "
-                         "render with sort='global' or backend='reference'")
-    intr = torch.tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy], dtype=torch.float32)
-    rgb, alpha_out, depth, cnt, pairs, _ = _RasterizePixelCPU.apply(
-        means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg,
-        ray_depth.coefs.detach().to(torch.float32).contiguous(), intr, st, int(window))
-    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
+        raise ValueError(f"{what} on the cpu backend has no variance-regulariser sums (reg_values); "
+                         "render without reg_values or with backend='reference'")
+    if ray_depth is None:
+        coefs, intr = means2d.new_zeros(means2d.shape[0], 9), means2d.new_tensor([1.0, 1.0, 0.0, 0.0])
+        window = 1
+    else:
+        coefs = ray_depth.coefs.detach().to(torch.float32).contiguous()
+        intr = means2d.new_tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy])   # on its device
+    rgb, alpha_out, depth, cnt, pairs, _, leaders = _RasterizePixelCPU.apply(
+        means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, coefs, intr, st, int(window),
+        -1.0 if lead_alpha is None else float(lead_alpha))
+    out = kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
+    out.leaders = leaders.long() if lead_alpha is not None else None
+    return out
 
 
 def rasterize_splats_cpu(
@@ -161,14 +174,16 @@ def rasterize_splats_cpu(
     t_min: float = K.T_MIN,
     ray_depth: RayDepth | None = None,
     window: int = K.SORT_WINDOW,
+    leaders: bool = False,
 ) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
     ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (no
-    ``reg_values``)."""
+    ``reg_values``). ``leaders`` renders through the per-pixel kernel (a scalar path, in either
+    order) to give the leading-splat map too."""
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
-    if ray_depth is not None:
-        return _per_pixel(st, args, ray_depth, window)
+    if ray_depth is not None or leaders:
+        return _per_pixel(st, args, ray_depth, window, K.LEADER_ALPHA if leaders else None)
     rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCPU.apply(*args, st)
     return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs)

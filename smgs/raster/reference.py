@@ -219,6 +219,15 @@ def _pixel_order(means2d, conics, depths, ray_depth, px, py) -> torch.Tensor:
         return torch.cat([o[:, :width] for o in orders])
 
 
+def _take_leader(lead: torch.Tensor, hit: torch.Tensor, k) -> torch.Tensor:
+    """Record splat ``k`` (an int, or one index per pixel) as the first, else the second, leading
+    splat of the pixels ``hit``; a pixel with two keeps them."""
+    k = torch.as_tensor(k, device=lead.device).expand(lead.shape[0])
+    first = hit & (lead[:, 0] < 0)
+    second = hit & ~first & (lead[:, 1] < 0)
+    return torch.stack([torch.where(first, k, lead[:, 0]), torch.where(second, k, lead[:, 1])], 1)
+
+
 def rasterize_splats_reference(
     means2d: torch.Tensor,
     conics: torch.Tensor,
@@ -238,10 +247,12 @@ def rasterize_splats_reference(
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
     ray_depth: RayDepth | None = None,
+    leaders: bool = False,
 ) -> RenderOutput:
     """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments. With
     ``ray_depth`` each pixel takes its splats in its own exact order (``smgs.raster.ray_depth``),
-    else all in the order of ``depths``."""
+    else all in the order of ``depths``. ``leaders``: also the leading-splat map (the first two
+    composited splats with a >= constants.LEADER_ALPHA per pixel)."""
     use_gef, use_softmax = mode_flags(mode)
     device, dtype = means2d.device, means2d.dtype
     n_ch = colors.shape[1]
@@ -262,16 +273,17 @@ def rasterize_splats_reference(
     reg = torch.zeros(P, 1 + 2 * n_reg, device=device, dtype=dtype) if n_reg else None
     d_front = torch.zeros(P, device=device, dtype=dtype)
     track = use_softmax and k_max > 0
+    lead = torch.full((P, 2), -1, device=device, dtype=torch.long) if leaders else None
     one = torch.ones((), device=device, dtype=dtype)
     half = 0.5 * one
 
     inputs = (means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values)
     if ray_depth is None:
-        steps = (_splat(k, *inputs) for k in _sorted_order(depths).tolist())
+        steps = ((k, _splat(k, *inputs)) for k in _sorted_order(depths).tolist())
     else:
         order = _pixel_order(means2d, conics, depths, ray_depth, px, py)
-        steps = (_splat(order[:, j], *inputs) for j in range(order.shape[1]))
-    for sp in steps:
+        steps = ((order[:, j], _splat(order[:, j], *inputs)) for j in range(order.shape[1]))
+    for k, sp in steps:
         dx = px - sp.mx
         dy = py - sp.my
         q = torch.clamp(quadratic_form(dx, dy, sp.conic), min=0.0)  # -p >= 0
@@ -306,6 +318,8 @@ def rasterize_splats_reference(
             new_state = [torch.where(soft[:, None] if v.dim() == 2 else soft, v, o)
                          for v, o in zip(ss, new_state)]
         T, A, C, d_past, p_past = new_state
+        if lead is not None:
+            lead = _take_leader(lead, reach & (a.detach() >= K.LEADER_ALPHA), k)
 
         if reg is not None:
             first = in_head & (count == 0)
@@ -329,4 +343,5 @@ def rasterize_splats_reference(
         depth=depth.reshape(height, width),
         stats=stats,
         reg=None if reg is None else reg.reshape(height, width, -1),
+        leaders=None if lead is None else lead.reshape(height, width, 2),
     )

@@ -55,13 +55,17 @@ class RenderStats:
 class RenderOutput:
     """rgb [H, W, C]; alpha [H, W] = 1 - final T; depth [H, W] expected depth normalised by alpha
     (0 where alpha is 0); reg [H, W, 1 + 2R] or None: per-pixel sums of the β/γ variance
-    regulariser (Σw, then Σw·v_r and Σw·v_r² for each regularised value r)."""
+    regulariser (Σw, then Σw·v_r and Σw·v_r² for each regularised value r); leaders [H, W, 2] long
+    or None: only when asked for (``leaders=True``), each pixel's first two composited splats whose
+    own absorbance is at least ``constants.LEADER_ALPHA``, in its compositing order (indices of the
+    input splats; -1 where it has fewer)."""
 
     rgb: torch.Tensor
     alpha: torch.Tensor
     depth: torch.Tensor
     stats: RenderStats
     reg: torch.Tensor | None = None
+    leaders: torch.Tensor | None = None
     extras: dict = field(default_factory=dict)
 
 

@@ -164,7 +164,7 @@ class Trainer:
         return torch.stack([b, c], dim=1)
 
     def render(self, camera: Camera, *, with_reg: bool = False, sh_degree: int | None = None,
-               background: torch.Tensor | None = None) -> RenderOutput:
+               background: torch.Tensor | None = None, leaders: bool = False) -> RenderOutput:
         g = self.gaussians
         deg = self.sh_degree() if sh_degree is None else sh_degree
         if deg == 0:    # view-independent: colours directly (the renderer skips the view directions)
@@ -182,7 +182,7 @@ class Trainer:
             mode=self.cfg.mode, k_max=self.cfg.k_max, sh_degree=deg_arg, background=background,
             backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
-            clamp_sh_colors=self.cfg.gaussians.clamp_colors)
+            clamp_sh_colors=self.cfg.gaussians.clamp_colors, leaders=leaders)
 
     # -- one step ----------------------------------------------------------------------------
     def _next_view(self) -> int:

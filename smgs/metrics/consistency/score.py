@@ -9,6 +9,9 @@ chosen flow; then over valid pixels only (inside the image after warping, not oc
   same pixels. With ``flip_min_subtraction`` the per-pixel minimum over the compared methods is
   subtracted first (StopThePop's default, relative to the set of methods); the metric is then
   named ``flip_minsub``.
+- Popping ratio (``leaders``): where the renders give a leading-splat map, the mean warped error
+  over the pixels whose two leading splats swapped order divided by that over the other valid
+  pixels, pooled over the pairs (``smgs.metrics.consistency.leaders``).
 When several methods are compared they are scored on the same mask: the intersection of their
 valid masks (StopThePop). Frames are quantised to 8 bits first, as a saved video's would be.
 """
@@ -25,12 +28,14 @@ from smgs.camera import Camera
 from smgs.metrics.consistency.flow import (ESTIMATORS, Flow, backward_warp, border_mask,
                                            geometric_flow, image_flow)
 from smgs.data.trajectory import Trajectory, frame_pairs
+from smgs.metrics.consistency.leaders import PopCount, pair_pop, pooled_ratio
 from smgs.metrics.flip import FLIP_PPD, flip_available, flip_error_map
 from smgs.metrics.image import evaluate_images, quantize_8bit
 from smgs.metrics.result import Missing, json_value
 
 RenderFn = Callable[[Camera], tuple]
-"""``render(camera) -> (rgb [H, W, 3] in [0, 1], depth [H, W] camera z, 0 where empty)``."""
+"""``render(camera) -> (rgb [H, W, 3] in [0, 1], depth [H, W] camera z, 0 where empty[, leaders
+[H, W, 2]])`` or a ``RenderOutput``; the leading-splat map is optional (the popping ratio)."""
 
 BORDER_PX = 20
 DEFAULT_STEPS = (7, 1)
@@ -40,6 +45,7 @@ DEFAULT_STEPS = (7, 1)
 class Frame:
     rgb: np.ndarray  # [H, W, 3] float32 in [0, 1] (8-bit values when quantised)
     depth: np.ndarray | None  # [H, W] float32
+    leaders: np.ndarray | None = None  # [H, W, 2] int64 (RenderOutput.leaders)
 
 
 @dataclass
@@ -49,6 +55,7 @@ class PairScore:
     mse: float | None  # None when the mask is empty
     flip: float | None
     valid_fraction: float
+    pop: PopCount | None = None   # None where the renders give no leading-splat map
 
 
 @dataclass
@@ -68,10 +75,13 @@ class ConsistencyScores:
     n_pairs: int
     n_empty: int
     per_pair: list[PairScore] = field(default_factory=list)
+    pop_ratio: float | Missing = field(default_factory=lambda: Missing("not computed"))
+    popped_fraction: float | Missing = field(default_factory=lambda: Missing("not computed"))
 
     def to_json(self) -> dict:
         d = asdict(self)
-        d["mse"], d["flip"] = json_value(self.mse), json_value(self.flip)
+        for k in ("mse", "flip", "pop_ratio", "popped_fraction"):
+            d[k] = json_value(getattr(self, k))
         return d
 
 
@@ -86,14 +96,16 @@ def _host(x) -> torch.Tensor:
 def _to_frame(out, quantize: bool) -> Frame:
     if isinstance(out, (tuple, list)):
         rgb, depth = out[0], (out[1] if len(out) > 1 else None)
+        leaders = out[2] if len(out) > 2 else None
     else:  # a RenderOutput
-        rgb, depth = out.rgb, out.depth
+        rgb, depth, leaders = out.rgb, out.depth, out.leaders
     rgb_t = _host(rgb)
     if rgb_t.dim() != 3 or rgb_t.shape[-1] != 3:
         raise ValueError(f"render must return rgb [H, W, 3], got {tuple(rgb_t.shape)}")
     rgb_t = quantize_8bit(rgb_t) if quantize else rgb_t.clamp(0, 1)
     d = None if depth is None else _host(depth).numpy().reshape(rgb_t.shape[:2])
-    return Frame(np.ascontiguousarray(rgb_t.numpy()), d)
+    lead = None if leaders is None else leaders.detach().cpu().long().numpy().reshape(rgb_t.shape[:2] + (2,))
+    return Frame(np.ascontiguousarray(rgb_t.numpy()), d, lead)
 
 
 class _FrameWindow:
@@ -157,7 +169,7 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
             j = i + s
             if j >= len(cameras):
                 continue
-            warped, valid, flips = {}, {}, {}
+            warped, valid, flips, flows = {}, {}, {}, {}
             for m in names:
                 src, tgt = windows[m].get(i), windows[m].get(j)
                 fl = _pair_flow(estimator, src, tgt, cameras[i], cameras[j], rel_depth_tol)
@@ -165,6 +177,7 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
                 w, inside = backward_warp(src.rgb, fl.flow)
                 h, wd = inside.shape
                 warped[m] = w
+                flows[m] = fl.flow
                 valid[m] = inside & fl.valid & border_mask(h, wd, border)
             if shared_mask:
                 common = np.logical_and.reduce([valid[m] for m in names])
@@ -181,10 +194,14 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
                 if n == 0:
                     acc[m][s].append(PairScore(i, j, None, None, 0.0))
                     continue
-                se = ((warped[m] - windows[m].get(j).rgb) ** 2).sum(-1)  # summed over RGB
+                tgt = windows[m].get(j)
+                se = ((warped[m] - tgt.rgb) ** 2).sum(-1)  # summed over RGB
+                src_lead = windows[m].get(i).leaders
+                pop = (pair_pop(se, mask, src_lead, tgt.leaders, flows[m])
+                       if src_lead is not None and tgt.leaders is not None else None)
                 acc[m][s].append(PairScore(i, j, float(se[mask].mean()),
                                            float(flips[m][mask].mean()) if flip_ok is True else None,
-                                           n / mask.size))
+                                           n / mask.size, pop))
         for m in names:
             windows[m].forget_below(i + 1)
         if progress is not None:
@@ -203,8 +220,9 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
             else:
                 mse = float(np.mean([p.mse for p in good]))
                 fl = float(np.mean([p.flip for p in good])) if flip_ok is True else flip_ok
+            ratio, share = pooled_ratio([p.pop for p in good if p.pop is not None])
             out[m][s] = ConsistencyScores(m, s, estimator, est_params.get(m, {}), mask_label, border, mse, fl,
-                                          flip_name, len(ps), len(ps) - len(good), ps)
+                                          flip_name, len(ps), len(ps) - len(good), ps, ratio, share)
     return out
 
 
@@ -224,9 +242,18 @@ class Table4Row:
     scores: dict[int, ConsistencyScores]
     trajectory: dict
 
+    @property
+    def pop_ratio(self) -> float | Missing:
+        return self.scores[self.step].pop_ratio
+
+    @property
+    def popped_fraction(self) -> float | Missing:
+        return self.scores[self.step].popped_fraction
+
     def to_json(self) -> dict:
         return {"scene": self.scene, "method": self.method, "psnr": json_value(self.psnr),
                 "mse": json_value(self.mse), self.flip_name: json_value(self.flip),
+                "pop_ratio": json_value(self.pop_ratio), "popped_fraction": json_value(self.popped_fraction),
                 "flip_name": self.flip_name, "estimator": self.estimator, "step": self.step,
                 "scores": {str(s): sc.to_json() for s, sc in self.scores.items()},
                 "trajectory": self.trajectory}

@@ -37,6 +37,10 @@ struct Scene {
 struct FwdOut {
   float *rgb, *alpha, *depth, *Tf, *reg;
   int32_t *last, *cnt;
+  // per-pixel path only: [H, W, 2] the first two composited splats with a >= lead_alpha, as pk rows
+  // (-1 where fewer), or null
+  int32_t* lead = nullptr;
+  float lead_alpha = 1.f;
 };
 
 struct BwdIn {

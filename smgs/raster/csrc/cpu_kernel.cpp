@@ -327,13 +327,15 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
 
 // sort="per_pixel" (cpu_pixel.cpp). coefs [N, 9] (smgs/raster/ray_depth.py), intr (fx, fy, cx, cy).
 // Returns [rgb, alpha, depth, n_contrib, T_final, pairs, ids, pk, box, tile_off, tile_list, splat_off,
-// splat_pos, order, order_off]: with keep_order the pixels' composited steps (PixelOrder in
-// cpu_core.h; else empty), which backward_pixel reads with the tensors after `pairs`.
+// splat_pos, order, order_off, leaders]: with keep_order the pixels' composited steps (PixelOrder in
+// cpu_core.h; else empty), which backward_pixel reads with the tensors after `pairs`; with
+// lead_alpha >= 0, leaders [H, W, 2]: each pixel's first two composited splats with a >= lead_alpha
+// (input indices, -1 where fewer; else empty).
 std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
                                       at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
                                       at::Tensor bg, at::Tensor coefs, at::Tensor intr, int64_t W, int64_t H,
                                       bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
-                                      double t_min, int64_t window, bool keep_order) {
+                                      double t_min, int64_t window, bool keep_order, double lead_alpha) {
   check_splats(means2d, conics, opac, colors, depths, alpha, beta, gamma, bg, gef, soft);
   check_f32(coefs, "coefs");
   check_f32(intr, "intrinsics");
@@ -358,6 +360,12 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
              Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32);
   FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(), nullptr,
            nullptr, cnt.data_ptr<int32_t>()};
+  const bool lead = lead_alpha >= 0.0;
+  at::Tensor leaders = lead ? at::empty({H, W, 2}, i32) : at::empty({0}, i32);
+  if (lead) {
+    o.lead = leaders.data_ptr<int32_t>();
+    o.lead_alpha = float(lead_alpha);
+  }
   std::vector<std::vector<int32_t>> order;
   int64_t pairs = forward_pixel_tiles(sc, o, cs.data(), intr.data_ptr<float>(), int(window), gef, soft,
                                       keep_order ? &order : nullptr);
@@ -368,8 +376,13 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
   at::Tensor opos = at::empty({op[order.size()]}, i32);
   for (size_t t = 0; t < order.size(); ++t)
     std::copy(order[t].begin(), order[t].end(), opos.data_ptr<int32_t>() + op[t]);
+  if (lead) {   // pk rows -> input indices
+    int32_t* l = leaders.data_ptr<int32_t>();
+    for (int64_t k = 0; k < 2 * H * W; ++k)
+      if (l[k] >= 0) l[k] = ids[l[k]];
+  }
   return {rgb, a, dep, cnt, Tf, at::full({1}, pairs, at::TensorOptions().dtype(at::kLong)), P.ids, P.pk, P.box,
-          P.toff, P.tlist, P.soff, P.spos, opos, ooff};
+          P.toff, P.tlist, P.soff, P.spos, opos, ooff, leaders};
 }
 
 // Backward of forward_pixel (kept with keep_order): its recorded order replayed. Returns the

@@ -5,7 +5,8 @@
 // keys leave in arrival, i.e. global, order. A window at least as long as a pixel's list is the
 // exact per-pixel sort of smgs/raster/reference.py. One pixel at a time (no SIMD lanes: each pixel
 // takes its splats in its own order); the compositing step is fwd_block's (cpu_tiles.h) for one
-// pixel.
+// pixel. It also gives the leading-splat map (FwdOut::lead) that the view-consistency metric reads,
+// in either order (window 1 with zero coefficients is the global order).
 //
 // Backward, every mode: the forward records each pixel's composited steps (their tile-list
 // positions, in its order); the backward replays them through the forward's step (the same code, so
@@ -133,13 +134,20 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
     for (int y = ty0; y < std::min(ty0 + kTileSize, sc.H); ++y)
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
         Pixel px;
+        int32_t lead[2] = {-1, -1};
         std::fill(C.begin(), C.end(), 0.f);
         pairs[w] += walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
           step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
-          if (taken && !px.done) taken->push_back(e.pos);
-          return !px.done;
+          if (px.done) return false;
+          if (taken) taken->push_back(e.pos);
+          if (o.lead && e.a >= o.lead_alpha && lead[1] < 0) lead[lead[0] < 0 ? 0 : 1] = lst[e.pos];
+          return true;
         });
         const size_t pix = size_t(y) * sc.W + x;
+        if (o.lead) {
+          o.lead[2 * pix] = lead[0];
+          o.lead[2 * pix + 1] = lead[1];
+        }
         for (int c = 0; c < sc.nch; ++c) o.rgb[pix * sc.nch + c] = C[c] + (sc.bg ? px.T * sc.bg[c] : 0.f);
         o.alpha[pix] = px.A;
         o.depth[pix] = px.A > 0.f ? C[sc.nch] / px.A : 0.f;
