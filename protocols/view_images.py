@@ -60,13 +60,21 @@ def save_view_images(renders_dir: Path, names: Sequence[str], renders: Sequence[
 
 def save_popping_strip(out_dir: Path, render: Callable, cameras: Sequence, per_pair: Sequence[dict],
                        step: int) -> dict | None:
-    """Render frames i … i+step around the pair with the highest MSE and tile them into one PNG of
-    tiles at most STRIP_TILE_WIDTH wide. ``per_pair``: the consistency scores' pairs (dicts with i, j,
-    mse). Returns what strip.json records, or None when no pair has a score."""
+    """Render frames i … i+step around a flip, the pair whose popped pixels (leading splats swapped
+    order) carry the most warped error, or where no pair has any, the pair with the highest MSE, and
+    tile them into one PNG of tiles at most STRIP_TILE_WIDTH wide. ``per_pair``: the consistency
+    scores' pairs (dicts with i, j, mse, pop). Returns what strip.json records, or None when no pair
+    has a score."""
     scored = [p for p in per_pair if p.get("mse") is not None]
     if not scored:
         return None
-    worst = max(scored, key=lambda p: p["mse"])
+    popped = [p for p in scored if (p.get("pop") or {}).get("popped")]
+    if popped:
+        worst = max(popped, key=lambda p: p["pop"]["popped_se"])
+        why = f"the i → i+{step} pair whose popped pixels carry the most warped error"
+    else:
+        worst = max(scored, key=lambda p: p["mse"])
+        why = f"the i → i+{step} pair with the highest warped MSE"
     i, j = int(worst["i"]), int(worst["j"])
     tiles = []
     with torch.no_grad():
@@ -79,7 +87,8 @@ def save_popping_strip(out_dir: Path, render: Callable, cameras: Sequence, per_p
             tiles.append(np.asarray(img))
     strip = np.concatenate(tiles, axis=1)
     info = {"frames": list(range(i, j + 1)), "pair": [i, j], "mse": float(worst["mse"]), "step": step,
-            "tile_width": int(tiles[0].shape[1]), "why": f"the i → i+{step} pair with the highest warped MSE"}
+            "tile_width": int(tiles[0].shape[1]), "why": why,
+            "popped_pixels": int((worst.get("pop") or {}).get("popped", 0))}
     atomic_write_bytes(out_dir / "strip.png", png_bytes(strip))
     atomic_write_text(out_dir / "strip.json", json.dumps(info))
     return info

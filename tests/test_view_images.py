@@ -64,3 +64,19 @@ def test_popping_strip_tiles_the_worst_pair(tmp_path):
     assert strip.shape[1] == 8 * info["tile_width"] and info["tile_width"] == 192
     assert json.loads((tmp_path / "strip.json").read_text())["mse"] == info["mse"]
     assert save_popping_strip(tmp_path / "none", render, cams, [{"i": 0, "j": 7, "mse": None}], 7) is None
+
+
+def test_popping_strip_prefers_the_pair_whose_popped_pixels_cost_most(tmp_path):
+    cams = list(range(12))
+
+    def render(cam):
+        return torch.full((8, 40, 3), cam / 20), None
+
+    pop = lambda n, se: {"popped": n, "popped_se": se, "rest": 100, "rest_se": 1.0}  # noqa: E731
+    pairs = [{"i": 0, "j": 7, "mse": 0.5, "pop": pop(0, 0.0)}, {"i": 1, "j": 8, "mse": 0.1, "pop": pop(3, 2.0)},
+             {"i": 2, "j": 9, "mse": 0.1, "pop": pop(9, 0.5)}, {"i": 3, "j": 10, "mse": 0.1, "pop": None}]
+    info = save_popping_strip(tmp_path, render, cams, pairs, 7)
+    assert info["pair"] == [1, 8] and info["popped_pixels"] == 3 and "popped" in info["why"]
+    # without any popped pixel: the highest MSE, as before
+    info = save_popping_strip(tmp_path / "b", render, cams, [dict(p, pop=None) for p in pairs], 7)
+    assert info["pair"] == [0, 7] and info["popped_pixels"] == 0
