@@ -30,6 +30,7 @@ class EvalConfig:
     consistency: bool                # Table 4 metrics
     flow: str                        # "geometric" | "opencv"
     consistency_max_width: int | None
+    popping_ratio: str = "auto"      # auto | on | off: Table 4's Pop7 (leading-splat maps of the video)
 
     @classmethod
     def of(cls, cfg: dict[str, Any]) -> "EvalConfig":

@@ -162,7 +162,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.diagnostics = diagnostics(method, desc, plan, within, ev, clock, peak.kind, fps_conditions)
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
-            result.consistency = consistency(method, scene, run_dir, ev)
+            result.consistency = consistency(method, scene, run_dir, ev, device)
     result.status = "ok"
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
@@ -269,10 +269,23 @@ def diagnostics(method, desc: dict, plan: list[str], within: list[float], ev: Ev
     return diag
 
 
-def consistency(method, scene, run_dir: Path, ev: EvalConfig) -> dict:
+def _no_popping_ratio(method, ev: EvalConfig, device: torch.device) -> str:
+    """Why this run's video is rendered without leading-splat maps ("" when it is rendered with)."""
+    if ev.popping_ratio == "off":
+        return "eval.popping_ratio=off"
+    if not isinstance(method, LeadingSplats):
+        return f"method {method.name!r} gives no leading-splat map (baselines.method.LeadingSplats)"
+    if ev.popping_ratio == "auto" and device.type == "cuda":
+        return ("the CUDA backend has no leading-splat kernel; eval.popping_ratio=on composites the video's "
+                "frames on host copies (slow for large scenes)")
+    return ""
+
+
+def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.device) -> dict:
     """Table 4 for this run (paper supp. Sec. 7): a video of 128 frames between consecutive test
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
-    pixels. Scored on this method's own mask; the trajectory is saved beside the results."""
+    pixels, and the popping ratio where the leading-splat maps are made (``eval.popping_ratio``).
+    Scored on this method's own mask; the trajectory is saved beside the results."""
     from smgs.metrics.consistency.score import consistency_row
     from smgs.data.trajectory import interpolate_trajectory
 
@@ -290,13 +303,17 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig) -> dict:
     if max_w and traj[0].width > max_w:
         traj = [c.scaled(max_w / c.width) for c in traj]
 
-    def render(cam):   # with the leading-splat map where the method gives one (the popping ratio)
-        out = method.render_leaders(cam) if isinstance(method, LeadingSplats) else method.render(cam)
+    no_pop = _no_popping_ratio(method, ev, device)
+
+    def render(cam):   # with the leading-splat map where it is made (the popping ratio)
+        out = method.render(cam) if no_pop else method.render_leaders(cam)
         return out.rgb, out.depth, out.leaders
 
     row = consistency_row(render, traj, scene=scene.name, method=method.name,
                           test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow)
     out = row.to_json()
+    if no_pop:
+        out["pop_ratio"] = out["popped_fraction"] = Missing(no_pop).to_json()
     pairs = out.get("scores", {}).get(str(row.step), {}).get("per_pair", [])
     if ev.save_renders:
         save_popping_strip(run_dir / "consistency", render, traj, pairs, row.step)

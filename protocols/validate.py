@@ -20,6 +20,8 @@ NUMBERS: tuple[tuple[str, str, float], ...] = (
     ("budget.densify_grad_threshold", "number", 0),
 )
 
+POPPING_RATIO: tuple[str, ...] = ("auto", "on", "off")
+
 
 def _get(cfg: dict, key: str) -> Any:
     for part in key.split("."):
@@ -54,6 +56,9 @@ def config_problems(cfg: dict) -> list[str]:
     fractions = _get(cfg, "eval.fractions") or []
     if not all(number_problem("f", f, "number", 0) is None and 0 < f <= 1 for f in fractions):
         problems.append(f"eval.fractions={fractions!r}: each must be a number in (0, 1]")
+    popping = _get(cfg, "eval.popping_ratio")
+    if popping is not None and popping not in POPPING_RATIO:
+        problems.append(f"eval.popping_ratio={popping!r}: must be one of {', '.join(POPPING_RATIO)}")
     backend = cfg.get("backend", "auto")
     from smgs.raster.api import BACKEND_NAMES
 

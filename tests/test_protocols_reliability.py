@@ -131,6 +131,7 @@ def test_a_sweep_with_a_failed_cell_exits_non_zero_saying_how_many(tmp_path):
     ("dataset.train.optim=nosuch", ["nosuch", "hyperparameter set", "3dgs2023"]),
     ("++method.train.k_max=lots", ["k_max", "'lots'", "int"]),
     ("backend=gpu9", ["backend", "gpu9", "reference"]),
+    ("eval.popping_ratio=yes", ["eval.popping_ratio", "'yes'", "auto, on, off"]),
 ])
 def test_impossible_settings_stop_the_sweep_before_any_cell_runs(tmp_path, override, words):
     with pytest.raises(SystemExit) as e:

@@ -154,3 +154,30 @@ def test_smoke_experiment_end_to_end_with_report(tmp_path):
     for name in ("3D GS", "Sharp edge only", "Softmax only", "Softmax-GS", "[cpu]"):
         assert name in report
     assert (tmp_path / "report" / "tables" / "table5_per_scene.csv").exists()
+
+
+def test_the_popping_ratio_is_left_out_with_why_where_its_maps_are_not_made():
+    """eval.popping_ratio: auto renders the leading-splat maps where the renderer makes them (not on
+    a CUDA device), on forces them, off never; a method without render_leaders is named."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from protocols.train_loop import _no_popping_ratio
+
+    class WithMaps:
+        name = "m"
+
+        def render_leaders(self, camera):
+            raise AssertionError("not called here")
+
+    class Without:
+        name = "plugin"
+
+    ev = lambda v: SimpleNamespace(popping_ratio=v)  # noqa: E731
+    cpu, cuda = torch.device("cpu"), torch.device("cuda:0")
+    assert _no_popping_ratio(WithMaps(), ev("auto"), cpu) == ""
+    assert "CUDA" in _no_popping_ratio(WithMaps(), ev("auto"), cuda)
+    assert _no_popping_ratio(WithMaps(), ev("on"), cuda) == ""
+    assert _no_popping_ratio(WithMaps(), ev("off"), cpu) == "eval.popping_ratio=off"
+    assert "'plugin'" in _no_popping_ratio(Without(), ev("on"), cpu)
