@@ -118,3 +118,23 @@ def test_leaders_with_regulariser_values_on_the_cpu_backend_are_refused_with_the
     with pytest.raises(ValueError, match="no variance-regulariser sums"):
         rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="cpu", leaders=True,
                   reg_values=torch.rand(20, 2))
+
+
+@torch.no_grad()
+def test_leaders_where_the_backend_has_no_kernel_for_them_are_composited_on_host_copies(monkeypatch):
+    """The CUDA path's logic, on the CPU: the backend resolves to 'cuda' (which has no leading-splat
+    kernel), so rasterize_splats renders host copies through the cpu/reference backend instead and
+    hands back the same outputs, the per-pixel order included."""
+    import smgs.raster.api as api
+
+    sc, cam = _crowded(n=80, seed=5), _camera(40, 32)
+    want = {s: rasterize(**sc, camera=cam, mode="softmax_gs", k_max=8, backend="reference", sort=s, leaders=True)
+            for s in ("global", "per_pixel")}
+    monkeypatch.setattr(api, "resolve_backend", lambda b, d, t: "cuda" if b == "cuda" else "reference")
+    monkeypatch.setattr(api, "_per_pixel_backend", lambda d, t, r: "cuda")
+    for s, ref in want.items():
+        got = rasterize(**sc, camera=cam, mode="softmax_gs", k_max=8, backend="cuda" if s == "global" else "auto",
+                        sort=s, leaders=True)
+        assert torch.equal(got.leaders, ref.leaders), s
+        torch.testing.assert_close(got.rgb, ref.rgb, rtol=0, atol=2e-5)   # projections: compiled vs torch
+        assert torch.equal(got.stats.n_contrib, ref.stats.n_contrib)

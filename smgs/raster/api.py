@@ -124,8 +124,10 @@ def _on_host(*args, **kwargs) -> RenderOutput:
     rd = kwargs.get("ray_depth")
     if rd is not None:
         kwargs["ray_depth"] = RayDepth(host(rd.coefs), rd.fx, rd.fy, rd.cx, rd.cy)
+    on_cpu = kwargs.get("reg_values") is None and backend_available("cpu", "cpu")
     with torch.no_grad():
-        out = rasterize_splats(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()})
+        out = rasterize_splats(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()},
+                               backend="cpu" if on_cpu else "reference")
     move = lambda t: None if t is None else t.to(device)  # noqa: E731
     return RenderOutput(rgb=move(out.rgb), alpha=move(out.alpha), depth=move(out.depth),
                         stats=RenderStats(move(out.stats.n_contrib), out.stats.pairs_evaluated, out.stats.k_max),
