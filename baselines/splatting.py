@@ -113,7 +113,8 @@ class GaussianSplatting:
         renderer backend."""
         from smgs.train.kernels import prepare_kernels
 
-        backend = prepare_kernels(self.config.backend, self.device, torch.float32, self.config.t_min)
+        backend = prepare_kernels(self.config.backend, self.device, torch.float32, self.config.t_min,
+                                  self.config.sort)
         return f"renderer backend {backend}"
 
     def describe(self) -> dict[str, Any]:

@@ -120,21 +120,29 @@ def test_leaders_with_regulariser_values_on_the_cpu_backend_are_refused_with_the
                   reg_values=torch.rand(20, 2))
 
 
-@torch.no_grad()
-def test_leaders_where_the_backend_has_no_kernel_for_them_are_composited_on_host_copies(monkeypatch):
-    """The CUDA path's logic, on the CPU: the backend resolves to 'cuda' (which has no leading-splat
-    kernel), so rasterize_splats renders host copies through the cpu/reference backend instead and
-    hands back the same outputs, the per-pixel order included."""
+def test_what_cuda_has_no_kernel_for_is_composited_on_host_copies(monkeypatch):
+    """The CUDA path's logic, on the CPU: the backend resolves to 'cuda' (no leading-splat kernel)
+    and auto's per-pixel order to 'host' (no per-pixel kernel), so rasterize_splats composites host
+    copies through the cpu backend and hands back its outputs, gradients included."""
     import smgs.raster.api as api
 
+    _cpu_or_skip()
     sc, cam = _crowded(n=80, seed=5), _camera(40, 32)
-    want = {s: rasterize(**sc, camera=cam, mode="softmax_gs", k_max=8, backend="reference", sort=s, leaders=True)
-            for s in ("global", "per_pixel")}
-    monkeypatch.setattr(api, "resolve_backend", lambda b, d, t: "cuda" if b == "cuda" else "reference")
-    monkeypatch.setattr(api, "_per_pixel_backend", lambda d, t, r: "cuda")
-    for s, ref in want.items():
-        got = rasterize(**sc, camera=cam, mode="softmax_gs", k_max=8, backend="cuda" if s == "global" else "auto",
+    want = {}
+    for s in ("global", "per_pixel"):
+        p = {k: v.clone().requires_grad_(True) for k, v in sc.items()}
+        out = rasterize(**p, camera=cam, mode="softmax_gs", k_max=8, backend="cpu", sort=s, leaders=True)
+        out.rgb.sum().backward()
+        want[s] = (out, {k: v.grad for k, v in p.items()})
+    real = api.resolve_backend
+    monkeypatch.setattr(api, "resolve_backend", lambda b, d, t: "cuda" if b == "cuda" else real(b, d, t))
+    monkeypatch.setattr(api, "_per_pixel_backend", lambda d, t, r: "host")
+    for s, (ref, grads) in want.items():
+        p = {k: v.clone().requires_grad_(True) for k, v in sc.items()}
+        got = rasterize(**p, camera=cam, mode="softmax_gs", k_max=8, backend="cuda" if s == "global" else "auto",
                         sort=s, leaders=True)
         assert torch.equal(got.leaders, ref.leaders), s
-        torch.testing.assert_close(got.rgb, ref.rgb, rtol=0, atol=2e-5)   # projections: compiled vs torch
-        assert torch.equal(got.stats.n_contrib, ref.stats.n_contrib)
+        torch.testing.assert_close(got.rgb, ref.rgb, rtol=0, atol=0)
+        got.rgb.sum().backward()
+        for k, g in grads.items():
+            torch.testing.assert_close(p[k].grad, g, rtol=0, atol=0, msg=f"{s} {k}")

@@ -112,22 +112,27 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
 
 def _per_pixel_backend(device: torch.device, dtype: torch.dtype, reg_values: torch.Tensor | None) -> str:
     """``auto`` for sort="per_pixel": the CPU re-sorting window wherever it applies (no regulariser
-    sums), else the reference's exact order."""
-    return "cpu" if reg_values is None and backend_available("cpu", device, dtype) else "reference"
+    sums; on another device's tensors through host copies, ``"host"``), else the reference's exact
+    order (which on a real scene needs far more memory than a GPU has)."""
+    if reg_values is None and dtype == torch.float32 and backend_available("cpu", "cpu"):
+        return "cpu" if device.type == "cpu" else "host"
+    return "reference"
 
 
 def _on_host(*args, **kwargs) -> RenderOutput:
-    """``rasterize_splats`` on host copies of its tensors (no gradients), the outputs moved back to
-    the inputs' device: for what the CUDA backend has no kernel for."""
+    """``rasterize_splats`` on host copies of its tensors through the cpu backend (the reference
+    where that does not apply), the outputs moved back to the inputs' device: for what the CUDA
+    backend has no kernel for. The copies are differentiable, so gradients flow back to the device."""
     device = args[0].device
-    host = lambda t: t.detach().cpu() if isinstance(t, torch.Tensor) else t  # noqa: E731
+    host = lambda t: t.cpu() if isinstance(t, torch.Tensor) else t  # noqa: E731
     rd = kwargs.get("ray_depth")
     if rd is not None:
-        kwargs["ray_depth"] = RayDepth(host(rd.coefs), rd.fx, rd.fy, rd.cx, rd.cy)
-    on_cpu = kwargs.get("reg_values") is None and backend_available("cpu", "cpu")
-    with torch.no_grad():
-        out = rasterize_splats(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()},
-                               backend="cpu" if on_cpu else "reference")
+        kwargs["ray_depth"] = RayDepth(rd.coefs.detach().cpu(), rd.fx, rd.fy, rd.cx, rd.cy)
+    on_cpu = kwargs.get("reg_values") is None and backend_available("cpu", "cpu", args[0].dtype)
+    out = rasterize_splats(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()},
+                           backend="cpu" if on_cpu else "reference")
+    if device.type == "cpu":
+        return out
     move = lambda t: None if t is None else t.to(device)  # noqa: E731
     return RenderOutput(rgb=move(out.rgb), alpha=move(out.alpha), depth=move(out.depth),
                         stats=RenderStats(move(out.stats.n_contrib), out.stats.pairs_evaluated, out.stats.k_max),
@@ -169,11 +174,11 @@ def rasterize_splats(
     0 never stops). ``ray_depth`` (from ``smgs.raster.ray_depth.ray_depth``): each pixel orders its
     splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``:
     exactly on the reference backend, through a re-sorting window of ``constants.SORT_WINDOW``
-    splats on the cpu backend (no ``reg_values``; ``auto`` picks it wherever it applies), not on
-    cuda. ``leaders``: the output's ``leaders`` map too (``RenderOutput``; for the view-consistency
-    metric): the cpu backend renders it through its per-pixel kernel (no ``reg_values``), cuda has
-    no such kernel, so there the splats are composited on host copies (cpu, else reference) and the
-    outputs moved back, without gradients.
+    splats on the cpu backend (no ``reg_values``; ``auto`` picks it wherever it applies, on CUDA
+    tensors through differentiable host copies), not on cuda. ``leaders``: the output's ``leaders``
+    map too (``RenderOutput``; for the view-consistency metric): the cpu backend renders it through
+    its per-pixel kernel (no ``reg_values``); cuda has no such kernel, so there the splats are
+    composited on host copies (cpu, else reference) and the outputs moved back.
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
@@ -191,11 +196,11 @@ def rasterize_splats(
             raise ValueError("sort='per_pixel' has no CUDA kernel yet; use backend='reference' or 'auto'")
         if backend == "auto":
             backend = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
-    name = resolve_backend(backend, means2d.device, means2d.dtype)
-    if leaders and name == "cuda":
+    name = "host" if backend == "host" else resolve_backend(backend, means2d.device, means2d.dtype)
+    if name == "host" or (leaders and name == "cuda"):
         return _on_host(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
                         mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-                        reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=True)
+                        reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=leaders)
     fn = _load_backend(name)
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
     if leaders:

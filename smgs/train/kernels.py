@@ -12,12 +12,17 @@ from smgs.train import image_loss
 
 
 def prepare_kernels(backend: str = "auto", device: torch.device | str = "cpu",
-                    dtype: torch.dtype = torch.float32, t_min: float = K.T_MIN) -> str:
+                    dtype: torch.dtype = torch.float32, t_min: float = K.T_MIN, sort: str = "global") -> str:
     """Build or load the renderer backend (for this ``t_min``), the compiled projection and the
     compiled training loss wherever a run on these tensors would use them; return the renderer
-    backend it will use. Raises ``BuildError`` for a failed build, as the run would."""
+    backend it will use. Raises ``BuildError`` for a failed build, as the run would. With
+    ``sort="per_pixel"`` off the CPU, the CPU window kernel that renders it on host copies too."""
     device = torch.device(device)
     name = resolve_backend(backend, device, dtype)
+    if sort == "per_pixel" and device.type != "cpu" and backend == "auto":
+        from smgs.raster import backend_available
+
+        backend_available("cpu", "cpu")   # builds it (or says it cannot be)
     if name != "reference":
         # one tiny render (a plain valid splat) through the public entry point builds exactly the
         # variant the run needs
