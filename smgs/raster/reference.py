@@ -329,19 +329,21 @@ def rasterize_splats_reference(
             reg = reg + torch.cat([w[:, None], w[:, None] * sp.rv, w[:, None] * sp.rv * sp.rv], dim=1)
         count = count + reach.long()
 
-    rgb = C[:, :n_ch]
-    if background is not None:
-        rgb = rgb + T[:, None] * background.to(dtype)[None, :]
-    alpha_out = A
-    pos = A > 0
-    depth = torch.where(pos, C[:, n_ch] / torch.where(pos, A, one), torch.zeros_like(A))
     stats = RenderStats(n_contrib=count.reshape(height, width), pairs_evaluated=P * means2d.shape[0],
                         k_max=k_max if use_softmax else 2**31 - 1)
-    return RenderOutput(
-        rgb=rgb.reshape(height, width, n_ch),
-        alpha=alpha_out.reshape(height, width),
-        depth=depth.reshape(height, width),
-        stats=stats,
-        reg=None if reg is None else reg.reshape(height, width, -1),
-        leaders=None if lead is None else lead.reshape(height, width, 2),
-    )
+    return _output(T, A, C, background, stats, reg, lead, width, height)
+
+
+def _output(T, A, C, background, stats: RenderStats, reg, lead, width: int, height: int) -> RenderOutput:
+    """The image from the final state: colour (+ T·background), alpha, expected depth normalised by
+    alpha (0 where alpha is 0), and the optional sums and leading-splat map, as [H, W, ...]."""
+    n_ch = C.shape[1] - 1
+    rgb = C[:, :n_ch]
+    if background is not None:
+        rgb = rgb + T[:, None] * background.to(C.dtype)[None, :]
+    pos = A > 0
+    depth = torch.where(pos, C[:, n_ch] / torch.where(pos, A, torch.ones_like(A)), torch.zeros_like(A))
+    shape = (height, width)
+    return RenderOutput(rgb=rgb.reshape(*shape, n_ch), alpha=A.reshape(shape), depth=depth.reshape(shape),
+                        stats=stats, reg=None if reg is None else reg.reshape(*shape, -1),
+                        leaders=None if lead is None else lead.reshape(*shape, 2))

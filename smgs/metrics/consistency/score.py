@@ -135,6 +135,74 @@ def _pair_flow(estimator: str, src: Frame, tgt: Frame, cam_src: Camera, cam_tgt:
     return image_flow(tgt.rgb, src.rgb, estimator)
 
 
+@dataclass(frozen=True)
+class _PairSettings:
+    """How every pair is scored (the arguments of ``score_consistency``)."""
+
+    estimator: str
+    border: int
+    shared_mask: bool
+    flip_min_subtraction: bool
+    rel_depth_tol: float
+    ppd: float
+    flip_ok: object   # True, or the Missing that says why FLIP is not computed
+
+
+def _score_pair(windows: dict[str, _FrameWindow], cameras: Sequence[Camera], i: int, j: int, ps: _PairSettings,
+                est_params: dict[str, dict]) -> dict[str, PairScore]:
+    """Every method's score of the pair (frame i warped onto frame j)."""
+    names = list(windows)
+    warped, valid, flips, flows = {}, {}, {}, {}
+    for m in names:
+        src, tgt = windows[m].get(i), windows[m].get(j)
+        fl = _pair_flow(ps.estimator, src, tgt, cameras[i], cameras[j], ps.rel_depth_tol)
+        est_params.setdefault(m, {"estimator": fl.estimator, **fl.params})
+        w, inside = backward_warp(src.rgb, fl.flow)
+        h, wd = inside.shape
+        warped[m], flows[m] = w, fl.flow
+        valid[m] = inside & fl.valid & border_mask(h, wd, ps.border)
+    if ps.shared_mask:
+        common = np.logical_and.reduce([valid[m] for m in names])
+        valid = {m: common for m in names}
+    if ps.flip_ok is True:
+        for m in names:
+            flips[m] = flip_error_map(windows[m].get(j).rgb, np.clip(warped[m], 0, 1), ps.ppd)
+        if ps.flip_min_subtraction:
+            floor = np.minimum.reduce([flips[m] for m in names])
+            flips = {m: flips[m] - floor for m in names}
+    out = {}
+    for m in names:
+        mask = valid[m]
+        n = int(mask.sum())
+        if n == 0:
+            out[m] = PairScore(i, j, None, None, 0.0)
+            continue
+        src, tgt = windows[m].get(i), windows[m].get(j)
+        se = ((warped[m] - tgt.rgb) ** 2).sum(-1)  # summed over RGB
+        pop = (pair_pop(se, mask, src.leaders, tgt.leaders, flows[m])
+               if src.leaders is not None and tgt.leaders is not None else None)
+        out[m] = PairScore(i, j, float(se[mask].mean()), float(flips[m][mask].mean()) if ps.flip_ok is True else None,
+                           n / mask.size, pop)
+    return out
+
+
+def _summarise(m: str, s: int, ps: list[PairScore], n_frames: int, settings: _PairSettings, est_params: dict,
+               mask_label: str, flip_name: str) -> ConsistencyScores:
+    """One method's scores for one step from its pairs."""
+    good = [p for p in ps if p.mse is not None]
+    if not frame_pairs(n_frames, s):
+        mse: float | Missing = Missing(f"trajectory of {n_frames} frames has no pair at step {s}")
+        fl: float | Missing = mse
+    elif not good:
+        mse = fl = Missing(f"no valid pixel in any of the {len(ps)} pairs at step {s}")
+    else:
+        mse = float(np.mean([p.mse for p in good]))
+        fl = float(np.mean([p.flip for p in good])) if settings.flip_ok is True else settings.flip_ok
+    ratio, share = pooled_ratio([p.pop for p in good if p.pop is not None])
+    return ConsistencyScores(m, s, settings.estimator, est_params.get(m, {}), mask_label, settings.border, mse, fl,
+                             flip_name, len(ps), len(ps) - len(good), ps, ratio, share)
+
+
 def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | Sequence[Camera], *,
                       steps: Sequence[int] = DEFAULT_STEPS, estimator: str = "geometric",
                       border: int = BORDER_PX, shared_mask: bool = True,
@@ -156,74 +224,25 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
     cameras = trajectory.cameras() if isinstance(trajectory, Trajectory) else list(trajectory)
     steps = sorted(set(int(s) for s in steps))
     names = list(renders)
-    flip_ok = flip_available()
+    settings = _PairSettings(estimator, border, shared_mask, flip_min_subtraction, rel_depth_tol, ppd,
+                             flip_available())
     flip_name = "flip_minsub" if flip_min_subtraction else "flip"
     windows = {m: _FrameWindow(renders[m], cameras, quantize) for m in names}
-    pairs = {s: frame_pairs(len(cameras), s) for s in steps}
     acc: dict[str, dict[int, list[PairScore]]] = {m: {s: [] for s in steps} for m in names}
     est_params: dict[str, dict] = {}
     mask_label = "shared:" + ",".join(names) if shared_mask and len(names) > 1 else "own"
     n_src = max(0, len(cameras) - steps[0])
     for i in range(n_src):
         for s in steps:
-            j = i + s
-            if j >= len(cameras):
-                continue
-            warped, valid, flips, flows = {}, {}, {}, {}
-            for m in names:
-                src, tgt = windows[m].get(i), windows[m].get(j)
-                fl = _pair_flow(estimator, src, tgt, cameras[i], cameras[j], rel_depth_tol)
-                est_params.setdefault(m, {"estimator": fl.estimator, **fl.params})
-                w, inside = backward_warp(src.rgb, fl.flow)
-                h, wd = inside.shape
-                warped[m] = w
-                flows[m] = fl.flow
-                valid[m] = inside & fl.valid & border_mask(h, wd, border)
-            if shared_mask:
-                common = np.logical_and.reduce([valid[m] for m in names])
-                valid = {m: common for m in names}
-            if flip_ok is True:
-                for m in names:
-                    flips[m] = flip_error_map(windows[m].get(j).rgb, np.clip(warped[m], 0, 1), ppd)
-                if flip_min_subtraction:
-                    floor = np.minimum.reduce([flips[m] for m in names])
-                    flips = {m: flips[m] - floor for m in names}
-            for m in names:
-                mask = valid[m]
-                n = int(mask.sum())
-                if n == 0:
-                    acc[m][s].append(PairScore(i, j, None, None, 0.0))
-                    continue
-                tgt = windows[m].get(j)
-                se = ((warped[m] - tgt.rgb) ** 2).sum(-1)  # summed over RGB
-                src_lead = windows[m].get(i).leaders
-                pop = (pair_pop(se, mask, src_lead, tgt.leaders, flows[m])
-                       if src_lead is not None and tgt.leaders is not None else None)
-                acc[m][s].append(PairScore(i, j, float(se[mask].mean()),
-                                           float(flips[m][mask].mean()) if flip_ok is True else None,
-                                           n / mask.size, pop))
+            if i + s < len(cameras):
+                for m, score in _score_pair(windows, cameras, i, i + s, settings, est_params).items():
+                    acc[m][s].append(score)
         for m in names:
             windows[m].forget_below(i + 1)
         if progress is not None:
             progress(i + 1, n_src)
-    out: dict[str, dict[int, ConsistencyScores]] = {}
-    for m in names:
-        out[m] = {}
-        for s in steps:
-            ps = acc[m][s]
-            good = [p for p in ps if p.mse is not None]
-            if not pairs[s]:
-                mse: float | Missing = Missing(f"trajectory of {len(cameras)} frames has no pair at step {s}")
-                fl: float | Missing = mse
-            elif not good:
-                mse = fl = Missing(f"no valid pixel in any of the {len(ps)} pairs at step {s}")
-            else:
-                mse = float(np.mean([p.mse for p in good]))
-                fl = float(np.mean([p.flip for p in good])) if flip_ok is True else flip_ok
-            ratio, share = pooled_ratio([p.pop for p in good if p.pop is not None])
-            out[m][s] = ConsistencyScores(m, s, estimator, est_params.get(m, {}), mask_label, border, mse, fl,
-                                          flip_name, len(ps), len(ps) - len(good), ps, ratio, share)
-    return out
+    return {m: {s: _summarise(m, s, acc[m][s], len(cameras), settings, est_params, mask_label, flip_name)
+                for s in steps} for m in names}
 
 
 @dataclass
