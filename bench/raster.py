@@ -3,6 +3,7 @@
     python bench/raster.py                      # the two benchmark scenes + random scenes, all modes
     python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --repeats 9
     python bench/raster.py --scenes 10k_256 --modes 3dgs --sorts global per_pixel --backends cpu
+    python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --backends cpu --leaders
 
 Everything is timed through ``smgs.raster.rasterize`` (EWA projection and SH in PyTorch, then the
 backend), loss = image mean, median over repeats after a warm-up. The modes of a scene and backend
@@ -130,7 +131,7 @@ def ratio_to(ts: dict[str, list[float]], key: str, base: str) -> float:
     return statistics.median(a / b for a, b in zip(ts[key], ts[base]))
 
 
-def mode_calls(params, cam, mode, backend, k_max, sort="global"):
+def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False):
     """(forward, forward+backward) closures of one mode, each returning the render output."""
     dev = torch.device("cuda" if backend == "cuda" else "cpu")
     params = {k: v.to(dev) for k, v in params.items()}
@@ -139,6 +140,8 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global"):
 
     # sort only where it is not the default: bench/ab.py runs this file against older trees too
     extra = {} if sort == "global" else {"sort": sort}
+    if leaders:
+        extra["leaders"] = True
 
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
@@ -165,9 +168,12 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global"):
 def bench_modes(params, cam, modes, backend, k_max, repeats, warmup) -> dict[str, dict]:
     """Every mode on one scene and backend: forward and forward+backward times (modes interleaved
     round by round), pairs, peak memory, and ratios to ``3dgs`` as medians of per-round ratios."""
-    # a label is a mode, or mode/sort for a sort other than global
-    calls = {m: mode_calls(params, cam, m.partition("/")[0], backend, k_max, m.partition("/")[2] or "global")
-             for m in modes}
+    # a label is a mode, or mode/sort for a sort other than global, +leaders with the leading-splat map
+    def parts(label):
+        base, lead = label.removesuffix("+leaders"), label.endswith("+leaders")
+        return base.partition("/")[0], base.partition("/")[2] or "global", lead
+
+    calls = {m: mode_calls(params, cam, parts(m)[0], backend, k_max, parts(m)[1], parts(m)[2]) for m in modes}
     res: dict[str, dict] = {}
     for m, (fwd, _, _dev) in calls.items():
         out = fwd()
@@ -206,6 +212,8 @@ def main(argv=None) -> None:
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--backends", nargs="+", default=["cpu", "cuda", "reference"])
     ap.add_argument("--sorts", nargs="+", default=["global"], choices=["global", "per_pixel"])
+    ap.add_argument("--leaders", action="store_true",
+                    help="also each mode with the leading-splat map (rasterize(leaders=True), Table 4's Pop7)")
     ap.add_argument("--k-max", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=1)
@@ -234,6 +242,8 @@ def main(argv=None) -> None:
             labels = [m if s == "global" else f"{m}/{s}" for s in args.sorts for m in args.modes]
             if backend == "cuda":
                 labels = [m for m in labels if "/" not in m]   # no per-pixel order on cuda
+            if args.leaders and backend != "cuda":   # (cuda composites them on host copies)
+                labels += [f"{m}+leaders" for m in labels]
             res = bench_modes(params, cam, labels, backend, args.k_max, reps, args.warmup)
             for mode, r in res.items():
                 print(f"  {name} {mode} {backend}: {r['fwd_ms']:.1f} / {r['fb_ms']:.1f} ms", file=sys.stderr,
