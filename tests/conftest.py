@@ -1,4 +1,4 @@
-"""Shared fixtures: the compiled CPU kernels' SIMD paths; no LPIPS download on first use."""
+"""Shared fixtures: the compiled CPU renderer, its SIMD paths; no LPIPS download on first use."""
 
 from __future__ import annotations
 
@@ -17,6 +17,18 @@ def cpu_isa(request, monkeypatch) -> str:
         pytest.skip(f"this CPU cannot run the {isa} path (it runs {', '.join(cpu_build.host_isas())})")
     monkeypatch.setenv(cpu_build.ISA_ENV, isa)
     return isa
+
+
+@pytest.fixture
+def cpu_backend():
+    """The compiled CPU renderer module, or a skip naming why it cannot be used here (no compiler or
+    ninja, or ``SMGS_DISABLE_CPU_BACKEND=1``); a failed build raises. tests/test_raster_cpu.py
+    asserts that it is available, so where it is expected, its absence fails there."""
+    from smgs.raster import cpu
+
+    if not cpu.is_available():
+        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
+    return cpu
 
 
 @pytest.fixture(autouse=True, scope="session")

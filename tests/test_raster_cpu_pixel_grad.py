@@ -106,15 +106,6 @@ def _assert_grads_close(g_cpu: dict, g_ref: dict) -> None:
         assert err <= GRAD_RTOL32 * scale, f"gradient of {k}: max error {err:.3g}, scale {scale:.3g}"
 
 
-@pytest.fixture(scope="module")
-def cpu_backend():
-    from smgs.raster import cpu
-
-    if not cpu.is_available():
-        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
-    return cpu
-
-
 @pytest.mark.parametrize("scene", ["crowded", "crossing"])
 @pytest.mark.parametrize("mode", MODES)
 def test_per_pixel_gradients_match_the_reference_exact_order(cpu_backend, mode, scene):

@@ -10,13 +10,6 @@ from smgs.raster import constants as K
 from test_raster_sort import _camera, _crowded
 
 
-def _cpu_or_skip():
-    from smgs.raster import cpu
-
-    if not cpu.is_available():
-        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
-
-
 @torch.no_grad()
 def test_reference_leaders_are_the_first_two_composited_splats_above_the_threshold():
     """An independent pixel-by-pixel 3DGS composite in the centres' depth order (the renderer's
@@ -53,14 +46,13 @@ def test_reference_leaders_are_the_first_two_composited_splats_above_the_thresho
 
 @pytest.mark.parametrize("mode", MODES)
 @torch.no_grad()
-def test_cpu_leaders_match_the_reference_in_both_orders(mode):
+def test_cpu_leaders_match_the_reference_in_both_orders(mode, cpu_backend):
     """Global order: the per-pixel kernel at window 1; per-pixel order: a window longer than every
     list (the exact sort). Same map, and the same image as the plain render."""
-    from smgs.raster import cpu, rasterize_splats
+    from smgs.raster import rasterize_splats
     from smgs.raster.projection import project_gaussians
     from smgs.raster.ray_depth import ray_depth
 
-    _cpu_or_skip()
     sc, cam = _crowded(), _camera(40, 32)
     ref = rasterize(**sc, camera=cam, mode=mode, k_max=8, backend="reference", leaders=True)
     got = rasterize(**sc, camera=cam, mode=mode, k_max=8, backend="cpu", leaders=True)
@@ -75,14 +67,14 @@ def test_cpu_leaders_match_the_reference_in_both_orders(mode):
     rd = ray_depth(sc["means3d"][ids], sc["quats"][ids], sc["scales"][ids], cam)
     args = (proj.means2d, proj.conics, sc["opacities"][ids], sc["colors_or_sh"][ids], proj.depths,
             sc["alpha"][ids], sc["beta"][ids], sc["gamma"][ids], cam.width, cam.height)
-    exact = cpu.rasterize_splats_cpu(*args, mode=mode, k_max=8, ray_depth=rd, window=100_000, leaders=True)
+    exact = cpu_backend.rasterize_splats_cpu(*args, mode=mode, k_max=8, ray_depth=rd, window=100_000, leaders=True)
     ref_pp = rasterize_splats(*args, mode=mode, k_max=8, backend="reference", ray_depth=rd, leaders=True)
     assert torch.equal(exact.leaders, ref_pp.leaders)
     assert not torch.equal(ref_pp.leaders, ref.leaders)   # the two orders differ somewhere
 
 
 @torch.no_grad()
-def test_leaders_name_the_callers_gaussians_and_follow_the_depth_order():
+def test_leaders_name_the_callers_gaussians_and_follow_the_depth_order(cpu_backend):
     """Two overlapping discs facing the camera, plus a Gaussian behind it (culled, so projected and
     input indices differ): the centre pixel's leaders are (front, back) by the callers' indices,
     and swap when the discs swap depths."""
@@ -94,12 +86,7 @@ def test_leaders_name_the_callers_gaussians_and_follow_the_depth_order():
     from smgs.camera import Camera
 
     cam = Camera.look_at([0.0, 0.0, -3.0], [0, 0, 0], [0, -1, 0], 40, 40, 32, 24)
-    backends = ["reference"]
-    from smgs.raster import cpu
-
-    if cpu.is_available():
-        backends.append("cpu")
-    for backend in backends:
+    for backend in ("reference", "cpu"):
         out = rasterize(means, quats, scales, opac, cols, cam, mode="3dgs", backend=backend, leaders=True)
         assert out.extras["ids"].tolist() == [1, 2]          # the first is behind the camera
         assert out.leaders[12, 16].tolist() == [1, 2], backend
@@ -112,21 +99,19 @@ def test_leaders_name_the_callers_gaussians_and_follow_the_depth_order():
         assert faint.leaders[12, 16].tolist() == [1, -1], backend    # a = 0.2 < LEADER_ALPHA
 
 
-def test_leaders_with_regulariser_values_on_the_cpu_backend_are_refused_with_the_fix():
-    _cpu_or_skip()
+def test_leaders_with_regulariser_values_on_the_cpu_backend_are_refused_with_the_fix(cpu_backend):
     sc = _crowded(n=20)
     with pytest.raises(ValueError, match="no variance-regulariser sums"):
         rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="cpu", leaders=True,
                   reg_values=torch.rand(20, 2))
 
 
-def test_what_cuda_has_no_kernel_for_is_composited_on_host_copies(monkeypatch):
+def test_what_cuda_has_no_kernel_for_is_composited_on_host_copies(monkeypatch, cpu_backend):
     """The CUDA path's logic, on the CPU: the backend resolves to 'cuda' (no leading-splat kernel)
     and auto's per-pixel order to 'host' (no per-pixel kernel), so rasterize_splats composites host
     copies through the cpu backend and hands back its outputs, gradients included."""
     import smgs.raster.api as api
 
-    _cpu_or_skip()
     sc, cam = _crowded(n=80, seed=5), _camera(40, 32)
     want = {}
     for s in ("global", "per_pixel"):

@@ -223,11 +223,7 @@ def _cpu_pixel(sc, mode, window, cam):
 
 @pytest.mark.parametrize("mode", MODES)
 @torch.no_grad()
-def test_cpu_window_as_long_as_the_lists_is_the_exact_order_and_window_one_the_global(mode):
-    from smgs.raster import cpu
-
-    if not cpu.is_available():
-        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
+def test_cpu_window_as_long_as_the_lists_is_the_exact_order_and_window_one_the_global(mode, cpu_backend):
     sc, cam = _crowded(), _camera(40, 32)
     exact_cpu, exact_ref, glob = _cpu_pixel(sc, mode, 100_000, cam)
     assert int(exact_ref.stats.n_contrib.max()) > 20           # crowded
@@ -241,15 +237,12 @@ def test_cpu_window_as_long_as_the_lists_is_the_exact_order_and_window_one_the_g
 
 
 @torch.no_grad()
-def test_the_window_of_16_against_the_exact_sort_on_a_crowded_scene():
+def test_the_window_of_16_against_the_exact_sort_on_a_crowded_scene(cpu_backend):
     """The bounded window (constants.SORT_WINDOW = 16) reorders only within 16 consecutive splats of
     the global order; on this crowded scene (lists of up to ~100 splats) it stays close to the exact
     order and far closer than the global order. Measured: see the printed figures."""
     from smgs.raster import constants as K
-    from smgs.raster import cpu
 
-    if not cpu.is_available():
-        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
     sc, cam = _crowded(n=600, seed=12), _camera(40, 32)
     win, exact, glob = _cpu_pixel(sc, "3dgs", K.SORT_WINDOW, cam)
     err_win = (win.rgb - exact.rgb).abs().amax(-1)
@@ -261,11 +254,7 @@ def test_the_window_of_16_against_the_exact_sort_on_a_crowded_scene():
     assert float((err_win > 1 / 255).float().mean()) < 0.5 * float((err_glob > 1 / 255).float().mean())
 
 
-def test_the_cpu_window_trains_and_auto_picks_it_without_regulariser_values():
-    from smgs.raster import cpu
-
-    if not cpu.is_available():
-        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
+def test_the_cpu_window_trains_and_auto_picks_it_without_regulariser_values(cpu_backend):
     sc = {k: t.clone().requires_grad_(True) for k, t in _scene(torch.float32).items()}
     exact = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="reference", sort="per_pixel")
     fast = rasterize(**sc, camera=_camera(), mode="softmax_gs", backend="auto", sort="per_pixel")   # the cpu window

@@ -194,9 +194,10 @@ def rasterize_splats(
                              f"got {tuple(ray_depth.coefs.shape)}")
         if backend == "cuda":
             raise ValueError("sort='per_pixel' has no CUDA kernel yet; use backend='reference' or 'auto'")
-        if backend == "auto":
-            backend = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
-    name = "host" if backend == "host" else resolve_backend(backend, means2d.device, means2d.dtype)
+    if ray_depth is not None and backend == "auto":   # cpu, reference, or the cpu on host copies ("host")
+        name = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
+    else:
+        name = resolve_backend(backend, means2d.device, means2d.dtype)
     if name == "host" or (leaders and name == "cuda"):
         return _on_host(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
                         mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,

@@ -149,9 +149,7 @@ def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None, w
     rgb, alpha_out, depth, cnt, pairs, _, leaders = _RasterizePixelCPU.apply(
         means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, coefs, intr, st, int(window),
         -1.0 if lead_alpha is None else float(lead_alpha))
-    out = kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs)
-    out.leaders = leaders.long() if lead_alpha is not None else None
-    return out
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if lead_alpha is not None else None)
 
 
 def rasterize_splats_cpu(

@@ -57,8 +57,11 @@ def kernel_grads(ctx, grads, g_rgb: torch.Tensor, t_final: torch.Tensor, n_setti
 
 
 def kernel_output(st: CompositeSettings, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
-                  reg: torch.Tensor | None, n_contrib: torch.Tensor, pairs: torch.Tensor) -> RenderOutput:
-    """The RenderOutput of a kernel's outputs (``reg`` None where no values were regularised)."""
+                  reg: torch.Tensor | None, n_contrib: torch.Tensor, pairs: torch.Tensor,
+                  leaders: torch.Tensor | None = None) -> RenderOutput:
+    """The RenderOutput of a kernel's outputs (``reg`` None where no values were regularised,
+    ``leaders`` None where the map was not asked for)."""
     stats = RenderStats(n_contrib=n_contrib.long(), pairs_evaluated=int(pairs.item()),
                         k_max=st.k_max if st.use_softmax else 2**31 - 1)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats, reg=reg)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats, reg=reg,
+                        leaders=None if leaders is None else leaders.long())
