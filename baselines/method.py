@@ -148,6 +148,18 @@ class LeadingSplats(Protocol):
         ...
 
 
+@runtime_checkable
+class ResolvedSettings(Protocol):
+    """Optional, beside ``Method``: the complete settings a run trains with, the method's own
+    defaults included. The protocol hashes them into the run's identity, so a result trained under
+    earlier defaults (an initial value changed by an update) is retrained, not reported as current."""
+
+    @classmethod
+    def resolved_settings(cls, config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
+        """What ``cls(scene, config, run=run)`` trains with, as plain data."""
+        ...
+
+
 @dataclass(frozen=True)
 class MethodSpec:
     """A registry entry: a name, the class as a lazily imported "module:Class" string (or the

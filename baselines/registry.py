@@ -124,6 +124,13 @@ def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str,
     return merge_config(config, spec.fixed)
 
 
+def resolved_settings(name: str, config: dict[str, Any] | None, run: RunSettings) -> dict[str, Any] | None:
+    """The method's complete settings for ``run`` (``ResolvedSettings``), or None for a method
+    that does not give them."""
+    fn = getattr(method_class(name), "resolved_settings", None)
+    return fn(resolve_config(name, config), run) if callable(fn) else None
+
+
 def _takes(cls: type, keyword: str) -> bool:
     try:
         params = inspect.signature(cls).parameters.values()

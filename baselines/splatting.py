@@ -53,6 +53,12 @@ class GaussianSplatting:
     def device(self) -> torch.device:
         return self.trainer.device
 
+    @classmethod
+    def resolved_settings(cls, config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
+        """The run's TrainConfig with every default filled in (``ResolvedSettings``)."""
+        return to_dict(from_dict(TrainConfig, train_config(config, run)))
+
+
 
     @classmethod
     def from_ply(cls, scene: Scene, path: str | Path, config: dict[str, Any] | None = None, *,

@@ -22,7 +22,24 @@ VOLATILE = ("force", "executor", "report", "out_dir", "data_root", "on_missing",
 
 
 def result_hash(cfg: dict) -> str:
-    return config_hash({k: v for k, v in cfg.items() if k not in VOLATILE})
+    """The identity of a cell's result: its config without the volatile keys, and the method's
+    complete settings where it gives them (``baselines.method.ResolvedSettings``), so that a
+    changed default retrains instead of reusing a result computed under the old one."""
+    ident = {k: v for k, v in cfg.items() if k not in VOLATILE}
+    resolved = _resolved_settings(cfg)
+    if resolved is not None:
+        ident["resolved_settings"] = resolved
+    return config_hash(ident)
+
+
+def _resolved_settings(cfg: dict) -> dict | None:
+    from baselines.registry import resolved_settings
+    from protocols.run_settings import method_settings, run_settings
+
+    try:
+        return resolved_settings(cfg["method"]["name"], method_settings(cfg), run_settings(cfg))
+    except (KeyError, ImportError, TypeError, ValueError):
+        return None   # a method or config that cannot be resolved fails in training, with its error
 
 
 def _logger(run_dir: Path) -> logging.Logger:

@@ -18,9 +18,9 @@ def _gaussians(cfg=None, extent=4.0, n=5):
 
 def test_default_activations_and_initial_values():
     g = _gaussians(extent=4.0)
-    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 20; γ = 0.3 per splat size: γ_world = 0.3/σ_i.
+    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 1; γ = 0.3 per splat size: γ_world = 0.3/σ_i.
     torch.testing.assert_close(g.alpha, torch.ones(5))
-    torch.testing.assert_close(g.beta, torch.full((5,), 20.0))
+    torch.testing.assert_close(g.beta, torch.ones(5))
     torch.testing.assert_close(g.gamma, 0.3 / g.scales.mean(1))
     torch.testing.assert_close(g.gamma_rel, 1.2 / g.scales.mean(1))  # stored relative to the extent
     g = _gaussians(GaussianConfig(gamma=ParamInit(1.0), gamma_unit="extent"), extent=4.0)
@@ -30,7 +30,7 @@ def test_default_activations_and_initial_values():
     torch.testing.assert_close(g.scales, torch.exp(g.params["scales"]))
     assert g.params["shN"].shape == (5, 15, 3)
     # exp activations: the raw values are logs, so Adam steps are ratios
-    torch.testing.assert_close(g.params["beta"], torch.full((5,), math.log(20.0)))
+    torch.testing.assert_close(g.params["beta"], torch.zeros(5))
     assert g.params["quats"][:, 0].eq(1).all() and g.params["quats"][:, 1:].eq(0).all()
 
 

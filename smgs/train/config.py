@@ -41,10 +41,15 @@ class GaussianConfig:
     γ; these defaults are our choice:
 
     * α (GEF sharpness) = exp(raw), init 1: the Gaussian kernel itself, i.e. vanilla 3DGS.
-    * β (softmax strength) = exp(raw), init 20. β's initial value decides the 2D fits: from 1 or 5
-      β can only grow ~x20 in 10K steps at the paper's rate 3e-4 (exp: ±lr per step in log space)
-      and ends too weak (20-21 dB on circle4); from 1000 it locks in a poor partition (18 dB);
-      from 20 Softmax-GS reaches ~28 dB (shared/research/findings.md).
+    * β (softmax strength) = exp(raw), init 1 (real scenes), 20 (the 2D patterns). The softmax
+      term's gradient on a splat's 2D mean grows with β, and 3DGS's densifier reads that gradient:
+      from β = 20 Softmax-GS cloned and split 3x as many Gaussians as 3DGS at the full budget and
+      fell 6 dB behind; from 1 the gradient is 3DGS's at initialisation (tools/densify_gradients.py)
+      and the real-scene rate (8e-3 on log β) moves β where the scene wants within a few hundred
+      steps. Chosen by measurement among 1, 5 and 20 (README "Softmax-GS on real scenes: β's
+      initial value"). The 2D fits differ: at their rate 3e-4 β can only grow ~x20 in 10K steps,
+      so from 1 or 5 it ends too weak (20-21 dB on circle4), from 1000 it locks in a poor partition
+      (18 dB), from 20 Softmax-GS reaches ~28 dB (shared/research/findings.md).
     * γ (depth decay) is stored relative to the scene: the renderer receives
       γ_world = γ / extent, so s = exp(-γ·|Δd| / extent) whatever the scene's units.
       ``gamma_unit`` says what its initial value is measured against. "splat" (default): each
@@ -63,7 +68,7 @@ class GaussianConfig:
     """
 
     alpha: ParamInit = field(default_factory=lambda: ParamInit(1.0))
-    beta: ParamInit = field(default_factory=lambda: ParamInit(20.0))
+    beta: ParamInit = field(default_factory=lambda: ParamInit(1.0))
     gamma: ParamInit = field(default_factory=lambda: ParamInit(0.3))
     gamma_unit: Literal["splat", "extent"] = "splat"
     init: Literal["auto", "sfm", "flat", "random"] = "auto"
@@ -263,7 +268,7 @@ def pattern_config(mode: str, cap: int, steps: int = 10_000, seed: int = 0) -> T
     findings.md), SH degree 0."""
     return TrainConfig(
         mode=mode, steps=steps, seed=seed,
-        gaussians=GaussianConfig(init="flat", max_sh_degree=0, clamp_colors=False,
+        gaussians=GaussianConfig(init="flat", max_sh_degree=0, clamp_colors=False, beta=ParamInit(20.0),
                                  gamma=ParamInit(1.0), gamma_unit="extent"),
         optim=hparams("3dgs2023+softmaxgs_patterns"),
         densify=densify_config("cap", cap=cap, reset_every=None, refine_stop=steps),
