@@ -20,3 +20,15 @@ def test_softmax_scales_the_densifiers_gradient_with_beta_and_gef_at_alpha_one_d
     assert soft[20.0].over[0] > soft[1.0].over[0]
     assert abs(soft[1.0].mean / s["3dgs"].mean - 1) < 0.15
     assert s["3dgs"].row().startswith("| 3dgs | – | ") and soft[1.0].row().startswith("| softmax_gs | 1 | ")
+
+
+def test_trace_records_each_refinement_and_its_count_adds_up():
+    """--trace: every refinement of the scaled full-budget schedule (every 10 steps from 60) is
+    recorded, and each one's count after cloning, splitting and pruning is the next one's start."""
+    rows = dg.refinement_trace("softmax_gs", steps=80, size=(64, 48))
+    assert [r.step for r in rows] == [60, 70, 80]
+    assert rows[0].n == 3000 and rows[0].beta is not None and rows[0].l1 > 0
+    for a, b in zip(rows, rows[1:]):
+        assert b.n == a.n + a.cloned + a.split - a.pruned   # a split adds two and removes the original
+    assert rows[0].cloned + rows[0].split > 0 and 0 < rows[0].over <= 1
+    assert dg.refinement_trace("3dgs", steps=61, size=(64, 48))[0].beta is None

@@ -2,12 +2,19 @@
 accumulates it (|dL/d means2d| scaled by half the image size), for the same Gaussians.
 
     python tools/densify_gradients.py [--views N] [--size W H] [--beta-init B ...]
+    python tools/densify_gradients.py --trace STEPS [--modes M ...] [--size W H]
 
 The procedural scene's SfM-initialised Gaussians, the first N training views, an L1 loss per view;
 per mode (and, for the softmax modes, per initial β) the median, 90th percentile and mean over
 visible splats and the share over the full (2e-4) and 5 % (4e-3) budgets' thresholds. The softmax
 term's gradient grows with β, so a mode whose competition scales these gradients clones and splits
 more at the same threshold (README: "Softmax-GS on real scenes: β's initial value").
+
+``--trace STEPS`` follows training instead: each mode trains STEPS steps of the cpu preset's
+full-budget schedule (3000 steps, 3DGS's 30K schedule scaled), and at each refinement prints the
+statistic the densifier reads (accumulated gradient / views), the training L1 of the last 10 steps,
+and what it cloned, split and pruned. It separates a rescaled gradient (larger statistic at the
+same residual) from a slower fit (larger residual, hence more splats over the threshold).
 """
 
 from __future__ import annotations
@@ -72,6 +79,61 @@ def gradient_stats(mode: str, views: int, size: tuple[int, int], seed: int = 0,
                      tuple(float((g >= t).float().mean()) for t in THRESHOLDS))
 
 
+@dataclass(frozen=True)
+class RefineRow:
+    """One refinement of a traced run: the statistic over the splats seen since the last one."""
+    step: int
+    n: int                 # Gaussians before the refinement
+    median: float
+    mean: float
+    over: float            # share at or over the threshold
+    l1: float              # mean training L1 of the last 10 steps
+    beta: float | None     # median β (softmax modes)
+    cloned: int
+    split: int
+    pruned: int
+
+    def row(self, mode: str) -> str:
+        beta = "–" if self.beta is None else f"{self.beta:.2f}"
+        return (f"| {mode} | {self.step} | {self.n} | {self.median:.3g} | {self.mean:.3g} | {100 * self.over:.1f} % | "
+                f"{self.l1:.4f} | {beta} | {self.cloned} | {self.split} | {self.pruned} |")
+
+
+def refinement_trace(mode: str, steps: int, size: tuple[int, int], seed: int = 0,
+                     threshold: float = THRESHOLDS[0], schedule: tuple[int, int] = (3000, 30_000)) -> list[RefineRow]:
+    """Train ``mode`` for ``steps`` steps of a ``schedule[0]``-step run (3DGS's ``schedule[1]``
+    schedule scaled to it) and record every refinement."""
+    from baselines.trainer_settings import scale_schedule
+    from smgs.data.datasets import load_scene
+    from smgs.train import TrainConfig, from_dict
+    from smgs.train.trainer import Trainer
+
+    scene = load_scene("procedural", n_views=24, size=size, test_every=8)
+    mc = {"mode": mode, "seed": seed, "steps": schedule[0],
+          "densify": {"budget": "full", "grow_grad2d": threshold}}
+    scale_schedule(mc, schedule[0], schedule[1])
+    torch.manual_seed(seed)
+    tr = Trainer(scene, from_dict(TrainConfig, mc), device="cpu")
+    st, refine = tr.strategy, tr.strategy.densify_and_prune
+    rows: list[RefineRow] = []
+    l1: list[float] = []
+
+    def traced(g, opt, prune_big):   # read the accumulators the refinement is about to use
+        seen = st.count > 0
+        gv = (st.grad2d / st.count.clamp_min(1))[seen]
+        beta = float(g.beta.detach().median()) if tr.use_softmax else None
+        ev = refine(g, opt, prune_big)
+        rows.append(RefineRow(tr.step_count + 1, len(seen), float(gv.median()), float(gv.mean()),
+                              float((gv >= threshold).float().mean()), sum(l1[-10:]) / max(len(l1[-10:]), 1),
+                              beta, ev.cloned, ev.split, ev.pruned))
+        return ev
+
+    st.densify_and_prune = traced
+    for _ in range(steps):
+        l1.append(tr.train_step()["l1"])
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=6)
@@ -79,7 +141,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--beta-init", type=float, nargs="+", default=None,
                     help="initial β values to compare for the softmax modes (default: the config's)")
+    ap.add_argument("--trace", type=int, default=None, metavar="STEPS",
+                    help="train each mode STEPS steps at the full budget and print every refinement")
+    ap.add_argument("--every", type=int, default=50, help="with --trace: print every refinement at a "
+                    "multiple of this step (and the first five)")
     a = ap.parse_args(argv)
+    if a.trace:
+        print("| mode | step | #GS | median | mean | over 2e-4 | train L1 | β | cloned | split | pruned |")
+        print("|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
+        for mode in a.modes:
+            rows = refinement_trace(mode, a.trace, tuple(a.size))
+            for i, r in enumerate(rows):
+                if i < 5 or r.step % a.every == 0:
+                    print(r.row(mode), flush=True)
+        return
     print("| mode | β init | splat-views | median | p90 | mean | " + " | ".join(f"≥ {t:g}" for t in THRESHOLDS) + " |")
     print("|---|--:|--:|--:|--:|--:|" + "--:|" * len(THRESHOLDS))
     for mode in a.modes:
