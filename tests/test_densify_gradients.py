@@ -1,6 +1,7 @@
-"""tools/densify_gradients.py: under softmax competition the same Gaussians put a screen-space
-gradient on their 2D means that grows with β (README: "Softmax-GS on real scenes: β's initial
-value"); at β = 1 it is close to 3DGS's, and with α = 1 at initialisation GEF-only is 3DGS exactly."""
+"""tools/densify_gradients.py: where splats at different depths compete (γ 0.3 per splat size, the
+earlier default) the same Gaussians put a screen-space gradient on their 2D means that grows with β;
+at the default γ (3) it is 3DGS's at any β (README: "Softmax-GS on real scenes: β's and γ's initial
+values"); with α = 1 at initialisation GEF-only is 3DGS exactly."""
 
 import sys
 from pathlib import Path
@@ -11,14 +12,17 @@ sys.path.insert(0, str(ROOT / "tools"))
 import densify_gradients as dg  # noqa: E402
 
 
-def test_softmax_scales_the_densifiers_gradient_with_beta_and_gef_at_alpha_one_does_not():
+def test_cross_depth_competition_scales_the_densifiers_gradient_with_beta_and_gef_at_alpha_one_does_not():
     s = {m: dg.gradient_stats(m, views=2, size=(64, 48)) for m in ("3dgs", "gef_only")}
-    soft = {b: dg.gradient_stats("softmax_gs", views=2, size=(64, 48), beta_init=b) for b in (1.0, 20.0)}
+    soft = {b: dg.gradient_stats("softmax_gs", views=2, size=(64, 48), beta_init=b, gamma_init=0.3)
+            for b in (1.0, 20.0)}
     assert s["3dgs"].n == soft[1.0].n == soft[20.0].n > 100
     assert s["gef_only"].mean == s["3dgs"].mean
     assert soft[20.0].mean > 1.3 * s["3dgs"].mean
     assert soft[20.0].over[0] > soft[1.0].over[0]
     assert abs(soft[1.0].mean / s["3dgs"].mean - 1) < 0.15
+    default = dg.gradient_stats("softmax_gs", views=2, size=(64, 48), beta_init=20.0)
+    assert abs(default.mean / s["3dgs"].mean - 1) < 0.1 < soft[20.0].mean / s["3dgs"].mean - 1
     assert s["3dgs"].row().startswith("| 3dgs | – | ") and soft[1.0].row().startswith("| softmax_gs | 1 | ")
 
 

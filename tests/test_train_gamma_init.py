@@ -34,3 +34,25 @@ def test_default_gamma_keeps_a_back_surface_hidden():
     # twenty splat sizes behind takes much of the pixel: the speckle this default avoids.
     old = _pixel("softmax_gs", GaussianConfig(gamma=ParamInit(1.0), gamma_unit="extent"))
     assert float(old[1]) > 0.2, old
+
+
+def test_default_gamma_keeps_a_splat_two_sizes_behind_hidden():
+    # The full-budget case: after densification a surface is many small splats, and one two splat
+    # sizes behind another must not take the pixel either. The earlier default (0.3 per splat
+    # size, decay length 3.3 sizes) let it; the current one (3, 1/3 of a size) does not.
+    def pixel(mode: str, cfg: GaussianConfig) -> torch.Tensor:
+        pts = torch.tensor([[0.01, 0.0, 3.0], [0.0, 0.0, 3.2]])
+        cols = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        g = Gaussians.from_points(pts, cols, cfg, extent=10.0, sh_degree=0,
+                                  scales=torch.full((2, 3), 0.1), device="cpu")
+        cam = Camera(torch.tensor([[100.0, 0, 0.5], [0, 100.0, 0.5], [0, 0, 1]]), torch.eye(4), 1, 1)
+        with torch.no_grad():
+            out = rasterize(g.means, g.quats, g.scales, torch.tensor([0.99, 0.99]), cols, cam, alpha=g.alpha,
+                            beta=g.beta, gamma=g.gamma, mode=mode, backend="reference")
+        return out.rgb[0, 0]
+
+    vanilla = pixel("3dgs", GaussianConfig())
+    assert vanilla[1] < 0.05
+    assert abs(float(pixel("softmax_gs", GaussianConfig())[1] - vanilla[1])) < 0.01
+    earlier = pixel("softmax_gs", GaussianConfig(gamma=ParamInit(0.3)))
+    assert float(earlier[1] - vanilla[1]) > 0.05, earlier

@@ -18,11 +18,11 @@ def _gaussians(cfg=None, extent=4.0, n=5):
 
 def test_default_activations_and_initial_values():
     g = _gaussians(extent=4.0)
-    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 1; γ = 0.3 per splat size: γ_world = 0.3/σ_i.
+    # α = 1 is the plain Gaussian (vanilla 3DGS); β = 1; γ = 3 per splat size: γ_world = 3/σ_i.
     torch.testing.assert_close(g.alpha, torch.ones(5))
     torch.testing.assert_close(g.beta, torch.ones(5))
-    torch.testing.assert_close(g.gamma, 0.3 / g.scales.mean(1))
-    torch.testing.assert_close(g.gamma_rel, 1.2 / g.scales.mean(1))  # stored relative to the extent
+    torch.testing.assert_close(g.gamma, 3.0 / g.scales.mean(1))
+    torch.testing.assert_close(g.gamma_rel, 12.0 / g.scales.mean(1))  # stored relative to the extent
     g = _gaussians(GaussianConfig(gamma=ParamInit(1.0), gamma_unit="extent"), extent=4.0)
     torch.testing.assert_close(g.gamma_rel, torch.ones(5))
     torch.testing.assert_close(g.gamma, torch.full((5,), 0.25))     # γ_world = γ / extent

@@ -1,14 +1,15 @@
 """The screen-space gradient each render mode puts on the splats' 2D means, as 3DGS's densifier
 accumulates it (|dL/d means2d| scaled by half the image size), for the same Gaussians.
 
-    python tools/densify_gradients.py [--views N] [--size W H] [--beta-init B ...]
-    python tools/densify_gradients.py --trace STEPS [--modes M ...] [--size W H]
+    python tools/densify_gradients.py [--views N] [--size W H] [--beta-init B ...] [--gamma-init G]
+    python tools/densify_gradients.py --trace STEPS [--modes M ...] [--size W H] [--gamma-init G]
 
 The procedural scene's SfM-initialised Gaussians, the first N training views, an L1 loss per view;
 per mode (and, for the softmax modes, per initial β) the median, 90th percentile and mean over
-visible splats and the share over the full (2e-4) and 5 % (4e-3) budgets' thresholds. The softmax
-term's gradient grows with β, so a mode whose competition scales these gradients clones and splits
-more at the same threshold (README: "Softmax-GS on real scenes: β's initial value").
+visible splats and the share over the full (2e-4) and 5 % (4e-3) budgets' thresholds. Where splats
+at different depths compete (a long depth decay, γ 0.3 per splat size), the softmax term's gradient
+grows with β and the densifier clones and splits more at the same threshold; at the default γ (3)
+it is 3DGS's at any β (README: "Softmax-GS on real scenes: β's and γ's initial values").
 
 ``--trace STEPS`` follows training instead: each mode trains STEPS steps of the cpu preset's
 full-budget schedule (3000 steps, 3DGS's 30K schedule scaled), and at each refinement prints the
@@ -51,8 +52,9 @@ class GradStats:
 
 
 def gradient_stats(mode: str, views: int, size: tuple[int, int], seed: int = 0,
-                   beta_init: float | None = None) -> GradStats:
-    """``beta_init``: the softmax modes' initial β (None: TrainConfig's default)."""
+                   beta_init: float | None = None, gamma_init: float | None = None) -> GradStats:
+    """``beta_init``, ``gamma_init``: the softmax modes' initial β and γ (per splat size; None:
+    TrainConfig's default)."""
     from smgs.data.datasets import load_scene
     from smgs.train import TrainConfig, from_dict
     from smgs.train.trainer import Trainer
@@ -60,8 +62,7 @@ def gradient_stats(mode: str, views: int, size: tuple[int, int], seed: int = 0,
     scene = load_scene("procedural", n_views=24, size=size, test_every=8)
     torch.manual_seed(seed)
     cfg = {"mode": mode, "seed": seed}
-    if beta_init is not None:
-        cfg["gaussians"] = {"beta": {"init": beta_init}}
+    cfg["gaussians"] = {k: {"init": v} for k, v in (("beta", beta_init), ("gamma", gamma_init)) if v is not None}
     tr = Trainer(scene, from_dict(TrainConfig, cfg), device="cpu")
     vals = []
     for v in scene.train[:views]:
@@ -100,9 +101,11 @@ class RefineRow:
 
 
 def refinement_trace(mode: str, steps: int, size: tuple[int, int], seed: int = 0,
-                     threshold: float = THRESHOLDS[0], schedule: tuple[int, int] = (3000, 30_000)) -> list[RefineRow]:
+                     threshold: float = THRESHOLDS[0], schedule: tuple[int, int] = (3000, 30_000),
+                     gamma_init: float | None = None) -> list[RefineRow]:
     """Train ``mode`` for ``steps`` steps of a ``schedule[0]``-step run (3DGS's ``schedule[1]``
-    schedule scaled to it) and record every refinement."""
+    schedule scaled to it) and record every refinement. ``gamma_init``: γ per splat size (None:
+    the default)."""
     from baselines.trainer_settings import scale_schedule
     from smgs.data.datasets import load_scene
     from smgs.train import TrainConfig, from_dict
@@ -111,6 +114,8 @@ def refinement_trace(mode: str, steps: int, size: tuple[int, int], seed: int = 0
     scene = load_scene("procedural", n_views=24, size=size, test_every=8)
     mc = {"mode": mode, "seed": seed, "steps": schedule[0],
           "densify": {"budget": "full", "grow_grad2d": threshold}}
+    if gamma_init is not None:
+        mc["gaussians"] = {"gamma": {"init": gamma_init}}
     scale_schedule(mc, schedule[0], schedule[1])
     torch.manual_seed(seed)
     tr = Trainer(scene, from_dict(TrainConfig, mc), device="cpu")
@@ -141,6 +146,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--beta-init", type=float, nargs="+", default=None,
                     help="initial β values to compare for the softmax modes (default: the config's)")
+    ap.add_argument("--gamma-init", type=float, default=None,
+                    help="initial γ per splat size for the softmax modes (default: the config's)")
     ap.add_argument("--trace", type=int, default=None, metavar="STEPS",
                     help="train each mode STEPS steps at the full budget and print every refinement")
     ap.add_argument("--every", type=int, default=50, help="with --trace: print every refinement at a "
@@ -150,7 +157,7 @@ def main(argv: list[str] | None = None) -> None:
         print("| mode | step | #GS | median | mean | over 2e-4 | train L1 | β | cloned | split | pruned |")
         print("|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
         for mode in a.modes:
-            rows = refinement_trace(mode, a.trace, tuple(a.size))
+            rows = refinement_trace(mode, a.trace, tuple(a.size), gamma_init=a.gamma_init)
             for i, r in enumerate(rows):
                 if i < 5 or r.step % a.every == 0:
                     print(r.row(mode), flush=True)
@@ -160,7 +167,7 @@ def main(argv: list[str] | None = None) -> None:
     for mode in a.modes:
         betas = a.beta_init if a.beta_init and mode in ("softmax_only", "softmax_gs") else [None]
         for b in betas:
-            print(gradient_stats(mode, a.views, tuple(a.size), beta_init=b).row(), flush=True)
+            print(gradient_stats(mode, a.views, tuple(a.size), beta_init=b, gamma_init=a.gamma_init).row(), flush=True)
 
 
 if __name__ == "__main__":
