@@ -41,12 +41,14 @@ class GaussianConfig:
     γ; these defaults are our choice:
 
     * α (GEF sharpness) = exp(raw), init 1: the Gaussian kernel itself, i.e. vanilla 3DGS.
-    * β (softmax strength) = exp(raw), init 1 (real scenes), 20 (the 2D patterns). The softmax
-      term's gradient on a splat's 2D mean grows with β, and 3DGS's densifier reads that gradient:
-      from β = 20 Softmax-GS cloned and split 3x as many Gaussians as 3DGS at the full budget and
-      fell 6 dB behind; from 1 the gradient is 3DGS's at initialisation (tools/densify_gradients.py)
-      and the real-scene rate (8e-3 on log β) moves β where the scene wants within a few hundred
-      steps. Chosen by measurement among 1, 5 and 20 (README "Softmax-GS on real scenes: β's
+    * β (softmax strength) = exp(raw), init 1 (real scenes), 20 (the 2D patterns). Where splats
+      at different depths compete (γ 0.3, the earlier default) the softmax term's gradient on a
+      splat's 2D mean grows with β, and 3DGS's densifier reads that gradient: from β = 20
+      Softmax-GS cloned and split 3x as many Gaussians as 3DGS at the full budget and fell 6 dB
+      behind; from 1 the gradient was 3DGS's at initialisation (tools/densify_gradients.py), and
+      the real-scene rate (8e-3 on log β) moves β where the scene wants within a few hundred
+      steps. At γ 3 the gradient no longer depends on β; 1 was chosen at γ 0.3, by measurement
+      among 1, 5 and 20 (README "Softmax-GS on real scenes: β's
       initial value"). The 2D fits differ: at their rate 3e-4 β can only grow ~x20 in 10K steps,
       so from 1 or 5 it ends too weak (20-21 dB on circle4), from 1000 it locks in a poor partition
       (18 dB), from 20 Softmax-GS reaches ~28 dB (shared/research/findings.md).
