@@ -58,8 +58,6 @@ class GaussianSplatting:
         """The run's TrainConfig with every default filled in (``ResolvedSettings``)."""
         return to_dict(from_dict(TrainConfig, train_config(config, run)))
 
-
-
     @classmethod
     def from_ply(cls, scene: Scene, path: str | Path, config: dict[str, Any] | None = None, *,
                  device: torch.device | str) -> "GaussianSplatting":

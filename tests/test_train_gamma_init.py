@@ -9,11 +9,11 @@ from smgs.train import GaussianConfig, ParamInit
 from smgs.train.gaussians import Gaussians
 
 
-def _pixel(mode: str, cfg: GaussianConfig) -> torch.Tensor:
-    # A scene 10 units across; two splats of size 0.1 on the optical axis, 2 units (20 sizes) apart:
-    # the front one red and opaque but off-centre at the pixel, the back one green and centred there
-    # (so it wins the softmax on its exponent if the depth decay lets it compete).
-    pts = torch.tensor([[0.01, 0.0, 3.0], [0.0, 0.0, 5.0]])
+def _pixel(mode: str, cfg: GaussianConfig, back_depth: float = 5.0) -> torch.Tensor:
+    # A scene 10 units across; two splats of size 0.1 on the optical axis, the front one at depth 3,
+    # red and opaque but off-centre at the pixel, the back one green and centred there (so it wins
+    # the softmax on its exponent if the depth decay lets it compete). Back at 5: 20 sizes apart.
+    pts = torch.tensor([[0.01, 0.0, 3.0], [0.0, 0.0, back_depth]])
     cols = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     g = Gaussians.from_points(pts, cols, cfg, extent=10.0, sh_degree=0,
                               scales=torch.full((2, 3), 0.1), device="cpu")
@@ -40,19 +40,8 @@ def test_default_gamma_keeps_a_splat_two_sizes_behind_hidden():
     # The full-budget case: after densification a surface is many small splats, and one two splat
     # sizes behind another must not take the pixel either. The earlier default (0.3 per splat
     # size, decay length 3.3 sizes) let it; the current one (3, 1/3 of a size) does not.
-    def pixel(mode: str, cfg: GaussianConfig) -> torch.Tensor:
-        pts = torch.tensor([[0.01, 0.0, 3.0], [0.0, 0.0, 3.2]])
-        cols = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-        g = Gaussians.from_points(pts, cols, cfg, extent=10.0, sh_degree=0,
-                                  scales=torch.full((2, 3), 0.1), device="cpu")
-        cam = Camera(torch.tensor([[100.0, 0, 0.5], [0, 100.0, 0.5], [0, 0, 1]]), torch.eye(4), 1, 1)
-        with torch.no_grad():
-            out = rasterize(g.means, g.quats, g.scales, torch.tensor([0.99, 0.99]), cols, cam, alpha=g.alpha,
-                            beta=g.beta, gamma=g.gamma, mode=mode, backend="reference")
-        return out.rgb[0, 0]
-
-    vanilla = pixel("3dgs", GaussianConfig())
+    vanilla = _pixel("3dgs", GaussianConfig(), back_depth=3.2)
     assert vanilla[1] < 0.05
-    assert abs(float(pixel("softmax_gs", GaussianConfig())[1] - vanilla[1])) < 0.01
-    earlier = pixel("softmax_gs", GaussianConfig(gamma=ParamInit(0.3)))
+    assert abs(float(_pixel("softmax_gs", GaussianConfig(), back_depth=3.2)[1] - vanilla[1])) < 0.01
+    earlier = _pixel("softmax_gs", GaussianConfig(gamma=ParamInit(0.3)), back_depth=3.2)
     assert float(earlier[1] - vanilla[1]) > 0.05, earlier

@@ -61,7 +61,7 @@ class GaussianConfig:
       apart composite as in 3DGS. Longer decays (0.3: 3.3 sizes, the earlier default) let splats
       at different depths trade pixels from view to view: the training residual stays high, 3DGS's
       densifier clones on it (1.8x 3DGS's Gaussians at the full budget) and the test views lose
-      3 dB. Chosen by measurement among 0.1, 0.3, 1 and 3 (README "Softmax-GS on real scenes: γ's
+      3-4 dB. Chosen by measurement among 0.1, 0.3, 1 and 3 (README "Softmax-GS on real scenes: γ's
       initial value"). "extent": γ_world = gamma.init / extent for
       all; with init 1 (the earlier default) the decay length is one scene extent, the front and
       back of an object compete and the back shows through as speckle, and γ's rate (4e-4 on
