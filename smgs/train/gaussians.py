@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -61,21 +62,28 @@ def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
     return torch.log(x / (1 - x))
 
 
-def knn_scale(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tensor:
-    """sqrt of the mean squared distance to the k nearest neighbours (3DGS ``distCUDA2``),
-    clamped at 1e-7 before the sqrt as 3DGS does; chunked so 100K points fit in memory."""
+def knn_scale(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """sqrt of the mean squared distance to the k nearest other points (3DGS ``distCUDA2``: k = 3),
+    clamped at 1e-7 before the sqrt as 3DGS does. A k-d tree (scipy's ``cKDTree``) answers the
+    query in O(n log n) time and O(n) memory: 100K random points in well under a second, where
+    dense distance blocks took a minute and gigabytes. Exact (not approximate) neighbours, in
+    float64; a duplicate point is a neighbour at distance 0, as in distCUDA2."""
+    from scipy.spatial import cKDTree
+
     n = points.shape[0]
     if n <= 1:
         return points.new_ones(n)
     k = min(k, n - 1)
-    out = points.new_empty(n)
-    p = points.double()
-    for i in range(0, n, chunk):
-        d2 = torch.cdist(p[i:i + chunk], p).square()
-        rows = torch.arange(d2.shape[0], device=p.device)
-        d2[rows, rows + i] = float("inf")
-        out[i:i + chunk] = d2.topk(k, largest=False).values.mean(1).clamp_min(1e-7).sqrt().to(points.dtype)
-    return out
+    p = points.detach().to("cpu", torch.float64).numpy()
+    if not np.isfinite(p).all():
+        raise ValueError(f"knn_scale: {int((~np.isfinite(p)).any(1).sum())} of {n} points are not finite "
+                         "(NaN or inf coordinates); fix or drop them before initialising Gaussians")
+    # k + 1: the query point itself comes back at distance 0; dropping the smallest distance drops
+    # it (or an exact duplicate, whose distance is the same 0), so the rest are the k nearest others
+    d, _ = cKDTree(p).query(p, k=k + 1)
+    mean_d2 = np.square(d[:, 1:]).mean(1)
+    out = torch.from_numpy(np.sqrt(np.maximum(mean_d2, 1e-7)))
+    return out.to(device=points.device, dtype=points.dtype)
 
 
 class Gaussians:
