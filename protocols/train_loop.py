@@ -160,6 +160,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.versions = versions(resolve_backend(cfg.get("backend", "auto"), device, torch.float32), device_name(device))
     result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
     result.diagnostics = diagnostics(method, desc, plan, within, ev, clock, peak.kind, fps_conditions)
+    if peak.baseline_bytes:   # resident at the training block's entry: peak minus this is the run's own
+        result.diagnostics["peak_memory_baseline_mb"] = peak.baseline_bytes / 2**20
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
             result.consistency = consistency(method, scene, run_dir, ev, device)

@@ -153,6 +153,7 @@ def test_device_cpu_reaches_results_and_the_report_names_it(tmp_path):
     assert res.config["device"] == "cpu"          # the resolved device is part of the config hash
     assert res.versions["device"] == name and res.render_device == name and name.startswith("cpu ")
     assert res.diagnostics["peak_memory_kind"].startswith("cpu_peak_rss")
+    assert 0 < res.diagnostics["peak_memory_baseline_mb"] <= res.peak_memory_mb
     assert "device: " + name in (tmp_path / "patterns/circle4/softmax_gs/cap4/seed0/log.txt").read_text()
 
 

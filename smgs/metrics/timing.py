@@ -7,10 +7,18 @@ On CPU it is the process's peak resident set size (Linux ``VmHWM``) over the blo
 through ``/proc/self/clear_refs``; where that reset is impossible it is the lifetime peak
 (``getrusage`` ``ru_maxrss``), and ``kind`` says so. CPU numbers include the interpreter and
 every library loaded, so compare them only between runs of the same process layout.
+
+Before the reset, glibc's ``malloc_trim(0)`` hands back the memory the allocator kept from earlier
+work (freed, still resident): without it a block's allocations can be served from those resident
+pages, its peak is then just the resident size at entry, and a run measured after other work in the
+same process (a sequential sweep, a test suite) sees nothing of its own allocations. ``baseline_bytes``
+is the resident size at entry after the trim, so ``bytes - baseline_bytes`` is the block's increment.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import resource
 import statistics
 import sys
@@ -80,24 +88,48 @@ class PeakMemory:
     device: str
     kind: str
     bytes: int = 0
+    baseline_bytes: int = 0  # resident at entry (CPU, after the trim); 0 where unknown
+
+    @property
+    def increment_mib(self) -> float:
+        return max(0, self.bytes - self.baseline_bytes) / 2**20
 
     @property
     def mib(self) -> float:
         return self.bytes / 2**20
 
     def to_json(self) -> dict:
-        return {"device": self.device, "kind": self.kind, "bytes": self.bytes}
+        return {"device": self.device, "kind": self.kind, "bytes": self.bytes,
+                "baseline_bytes": self.baseline_bytes}
 
 
-def _vm_hwm_bytes() -> int | None:
+def _status_bytes(field_name: str) -> int | None:
     try:
         with open("/proc/self/status") as f:
             for line in f:
-                if line.startswith("VmHWM:"):
+                if line.startswith(field_name + ":"):
                     return int(line.split()[1]) * 1024
     except OSError:
         return None
     return None
+
+
+def _vm_hwm_bytes() -> int | None:
+    return _status_bytes("VmHWM")
+
+
+def release_retained_heap() -> bool:
+    """glibc's ``malloc_trim(0)``: return the free memory the allocator keeps resident to the OS.
+    False where the C library has no such call (musl, macOS)."""
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        trim = None
+    if trim is None:
+        return False
+    trim(ctypes.c_size_t(0))
+    return True
 
 
 def _reset_vm_hwm() -> bool:
@@ -128,8 +160,9 @@ def track_peak_memory(device: torch.device | str) -> Iterator[PeakMemory]:
             synchronize(dev)
             pm.bytes = int(torch.cuda.max_memory_allocated(dev))
         return
+    release_retained_heap()
     if _reset_vm_hwm() and _vm_hwm_bytes() is not None:
-        pm = PeakMemory(device_name(dev), "cpu_peak_rss_vmhwm_reset")
+        pm = PeakMemory(device_name(dev), "cpu_peak_rss_vmhwm_reset", baseline_bytes=_status_bytes("VmRSS") or 0)
         try:
             yield pm
         finally:
