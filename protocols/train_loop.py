@@ -43,13 +43,18 @@ def eval_steps(steps: int, fractions: list[float]) -> list[int]:
 
 
 def _save_checkpoint(run_dir: Path, method, progress: dict) -> None:
-    """Checkpoint directory first, then an atomic pointer to it: an interrupted save leaves the
-    previous checkpoint in force. ``progress`` carries the cell's config hash, which both the
-    directory and the pointer record, so a checkpoint is only ever resumed by its own config."""
-    name = f"ckpt-{progress['step']:07d}"
+    """Write the new checkpoint beside the one in force, switch the pointer to it atomically, then
+    remove the others. The new folder gets a name no folder there has (``ckpt-<step>``, or
+    ``ckpt-<step>-<n>`` when a run resumed at its last step saves that step again), so at every
+    instant of a save the pointer names a complete checkpoint: the previous one until the switch,
+    the new one after it (docs/runs.md). ``progress`` carries the cell's config hash, which both
+    the folder and the pointer record, so a checkpoint is only ever resumed by its own config."""
+    base = f"ckpt-{progress['step']:07d}"
+    name, n = base, 0
+    while (run_dir / name).exists() or (run_dir / name).is_symlink():
+        n += 1
+        name = f"{base}-{n}"
     d = run_dir / name
-    if d.exists():
-        shutil.rmtree(d)
     method.save(d)
     atomic_write_text(d / "progress.json", json.dumps(progress))
     atomic_write_text(run_dir / POINTER, json.dumps({"dir": name, "config_hash": progress["config_hash"]}))
