@@ -4,6 +4,7 @@
     python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --repeats 9
     python bench/raster.py --scenes 10k_256 --modes 3dgs --sorts global per_pixel --backends cpu
     python bench/raster.py --scenes 10k_256 --modes 3dgs softmax_gs --backends cpu --leaders
+    python bench/raster.py --scenes 100k_512 --modes 3dgs softmax_gs --backends cuda --scopes pixel patch
 
 Everything is timed through ``smgs.raster.rasterize`` (EWA projection and SH in PyTorch, then the
 backend), loss = image mean, median over repeats after a warm-up. The modes of a scene and backend
@@ -13,8 +14,10 @@ load. Columns: forward ms, forward + backward ms, splat-pixel pairs the backend 
 before it, and each mode's time relative to ``3dgs`` on the same scene and backend (the median of
 the per-round ratios). The load average is printed with the table; ratios between modes are more
 stable than absolute times. ``--sorts global per_pixel`` adds each mode in the per-pixel order
-(rows ``mode/per_pixel``, timed in the same rounds; ×3dgs is then against global ``3dgs``). To
-compare two source trees of the renderer, see ``bench/ab.py``.
+(rows ``mode/per_pixel``, timed in the same rounds; ×3dgs is then against global ``3dgs``).
+``--scopes pixel patch`` adds each softmax mode with k_max in patch scope (rows ``mode@patch``,
+docs/kmax-scope.md); "within k_max" is then the pixels whose splats all lie in their tile's first
+k_max entries. To compare two source trees of the renderer, see ``bench/ab.py``.
 
 Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
 scenes made by the same recipe at other sizes. The reference backend is dense (every splat at every
@@ -40,7 +43,7 @@ if str(ROOT) not in sys.path:
 
 from smgs import Camera  # noqa: E402  (smgs before torch: it sets the OpenMP wait policy)
 from smgs.metrics.timing import device_name, track_peak_memory  # noqa: E402
-from smgs.raster import MODES, backend_available, rasterize  # noqa: E402
+from smgs.raster import MODES, backend_available, mode_flags, rasterize  # noqa: E402
 from smgs.raster.projection import project_gaussians  # noqa: E402
 
 import torch  # noqa: E402
@@ -131,7 +134,7 @@ def ratio_to(ts: dict[str, list[float]], key: str, base: str) -> float:
     return statistics.median(a / b for a, b in zip(ts[key], ts[base]))
 
 
-def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False):
+def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False, scope="pixel"):
     """(forward, forward+backward) closures of one mode, each returning the render output."""
     dev = torch.device("cuda" if backend == "cuda" else "cpu")
     params = {k: v.to(dev) for k, v in params.items()}
@@ -142,6 +145,8 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False):
     extra = {} if sort == "global" else {"sort": sort}
     if leaders:
         extra["leaders"] = True
+    if scope != "pixel":
+        extra["k_max_scope"] = scope
 
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
@@ -168,12 +173,17 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False):
 def bench_modes(params, cam, modes, backend, k_max, repeats, warmup) -> dict[str, dict]:
     """Every mode on one scene and backend: forward and forward+backward times (modes interleaved
     round by round), pairs, peak memory, and ratios to ``3dgs`` as medians of per-round ratios."""
-    # a label is a mode, or mode/sort for a sort other than global, +leaders with the leading-splat map
+    # a label is a mode, or mode/sort for a sort other than global, @scope for a k_max scope other
+    # than pixel, +leaders with the leading-splat map
     def parts(label):
         base, lead = label.removesuffix("+leaders"), label.endswith("+leaders")
-        return base.partition("/")[0], base.partition("/")[2] or "global", lead
+        base, _, scope = base.partition("@")
+        return base.partition("/")[0], base.partition("/")[2] or "global", lead, scope or "pixel"
 
-    calls = {m: mode_calls(params, cam, parts(m)[0], backend, k_max, parts(m)[1], parts(m)[2]) for m in modes}
+    calls = {}
+    for m in modes:
+        mode, sort, lead, scope = parts(m)
+        calls[m] = mode_calls(params, cam, mode, backend, k_max, sort, lead, scope)
     res: dict[str, dict] = {}
     for m, (fwd, _, _dev) in calls.items():
         out = fwd()
@@ -215,6 +225,8 @@ def main(argv=None) -> None:
     ap.add_argument("--leaders", action="store_true",
                     help="also each mode with the leading-splat map (rasterize(leaders=True), Table 4's Pop7)")
     ap.add_argument("--k-max", type=int, default=128)
+    ap.add_argument("--scopes", nargs="+", default=["pixel"], choices=["pixel", "patch"],
+                    help="k_max scopes of the softmax modes (docs/kmax-scope.md); rows mode@patch")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--reference-max-pairs", type=float, default=5e6)
@@ -223,7 +235,8 @@ def main(argv=None) -> None:
     from smgs.raster import cpu_build   # here, not at the top: bench/ab.py imports this file into older trees
 
     print(f"# smgs renderer benchmark: {device_name('cpu')}, CPU SIMD path {cpu_build.isa_in_use()} "
-          f"(${cpu_build.ISA_ENV}), torch {torch.__version__}, k_max {args.k_max}, "
+          f"(${cpu_build.ISA_ENV}), torch {torch.__version__}, k_max {args.k_max} "
+          f"(scopes {', '.join(args.scopes)}), "
           f"median of {args.repeats} after {args.warmup} warm-up")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     rows, notes = [], []
@@ -239,7 +252,9 @@ def main(argv=None) -> None:
             if backend == "reference" and n * cam.width * cam.height > args.reference_max_pairs:
                 continue
             reps = args.repeats if backend != "reference" else max(1, min(args.repeats, 3))
-            labels = [m if s == "global" else f"{m}/{s}" for s in args.sorts for m in args.modes]
+            labels = [(m if s == "global" else f"{m}/{s}") + ("" if sc == "pixel" else f"@{sc}")
+                      for sc in args.scopes for s in args.sorts for m in args.modes
+                      if sc == "pixel" or mode_flags(m)[1]]   # the scope changes softmax modes only
             if backend == "cuda":
                 labels = [m for m in labels if "/" not in m]   # no per-pixel order on cuda
             if args.leaders and backend != "cuda":   # (cuda composites them on host copies)

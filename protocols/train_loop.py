@@ -272,6 +272,7 @@ def diagnostics(method, desc: dict, plan: list[str], within: list[float], ev: Ev
     mode = desc.get("config", {}).get("mode", method.name)
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
         diag["frac_within_kmax"] = float(np.mean(within))
+        diag["k_max_scope"] = desc.get("config", {}).get("k_max_scope", "pixel")   # what the coverage counts
     diag["params"] = {k: _quantiles(v) for k, v in method.parameter_values().items()}
     return diag
 

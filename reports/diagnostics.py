@@ -40,7 +40,8 @@ def k_max(r: RunResult) -> str:
     method = c.get("method") if isinstance(c.get("method"), dict) else {}
     train = method.get("train") if isinstance(method.get("train"), dict) else {}
     v = train.get("k_max", c.get("k_max"))
-    return str(v) if v is not None else "not recorded"
+    scope = train.get("k_max_scope", "pixel")   # docs/kmax-scope.md; results before the switch: pixel
+    return ("not recorded" if v is None else str(v)) + ("" if scope == "pixel" else f" ({scope})")
 
 
 def _coverage(r: RunResult) -> float | None:

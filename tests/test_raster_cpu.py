@@ -111,6 +111,10 @@ def assert_same(o_cpu, g_cpu, o_ref, g_ref, out_atol, grad_rtol):
     torch.testing.assert_close(o_cpu.depth, o_ref.depth.to(o_cpu.depth.dtype), rtol=0, atol=4 * out_atol)
     assert torch.equal(o_cpu.stats.n_contrib, o_ref.stats.n_contrib)
     assert o_cpu.stats.k_max == o_ref.stats.k_max
+    assert o_cpu.stats.scope == o_ref.stats.scope
+    assert (o_cpu.stats.list_end is None) == (o_ref.stats.list_end is None)
+    if o_ref.stats.list_end is not None:   # patch scope: the emulated tile lists are the kernel's
+        assert torch.equal(o_cpu.stats.list_end, o_ref.stats.list_end)
     if o_ref.reg is not None:
         torch.testing.assert_close(o_cpu.reg, o_ref.reg.to(o_cpu.reg.dtype), rtol=1e-5, atol=out_atol)
     else:
@@ -131,22 +135,25 @@ def assert_same(o_cpu, g_cpu, o_ref, g_ref, out_atol, grad_rtol):
 W, H = 37, 29   # 3x2 tiles, partial tiles and partial 4x4 blocks on both edges
 
 
+@pytest.mark.parametrize("scope", ["pixel", "patch"])   # docs/kmax-scope.md
 @pytest.mark.parametrize("k_max", [2, 128])   # below and above the splats overlapping a pixel
 @pytest.mark.parametrize("mode", MODES)
-def test_cpu_matches_reference_float32(mode, k_max):
+def test_cpu_matches_reference_float32(mode, k_max, scope):
     sc = random_scene(40, W, H, seed=k_max)
     bg = torch.tensor([0.2, 0.5, 0.9])
-    oc, gc = render_and_grad(sc, W, H, "cpu", mode, k_max=k_max, background=bg)
-    orf, gr = render_and_grad(sc, W, H, "reference", mode, k_max=k_max, background=bg)
+    kw = dict(k_max=k_max, background=bg, k_max_scope=scope)
+    oc, gc = render_and_grad(sc, W, H, "cpu", mode, **kw)
+    orf, gr = render_and_grad(sc, W, H, "reference", mode, **kw)
     assert oc.stats.n_contrib.max() > 2    # so k_max = 2 truncates somewhere
     assert 0 < oc.stats.pairs_evaluated < orf.stats.pairs_evaluated   # tiling skipped pairs
     assert_same(oc, gc, orf, gr, OUT_ATOL32, GRAD_RTOL32)
 
 
+@pytest.mark.parametrize("scope", ["pixel", "patch"])
 @pytest.mark.parametrize("mode", ["softmax_only", "softmax_gs", "3dgs"])
-def test_cpu_matches_reference_printed_eq15_one_channel_and_regulariser(mode):
+def test_cpu_matches_reference_printed_eq15_one_channel_and_regulariser(mode, scope):
     sc = random_scene(30, W, H, seed=5, n_ch=1, n_reg=2)
-    kw = dict(k_max=3, eq15="printed", reg_depth_scale=0.7, background=torch.tensor([0.3]))
+    kw = dict(k_max=3, eq15="printed", reg_depth_scale=0.7, background=torch.tensor([0.3]), k_max_scope=scope)
     oc, gc = render_and_grad(sc, W, H, "cpu", mode, **kw)
     orf, gr = render_and_grad(sc, W, H, "reference", mode, **kw)
     assert oc.rgb.shape == (H, W, 1) and oc.reg.shape == (H, W, 5)
@@ -161,12 +168,14 @@ def test_cpu_k_max_zero_is_all_vanilla(mode):
     assert_same(oc, gc, orf, gr, OUT_ATOL32, GRAD_RTOL32)
 
 
+@pytest.mark.parametrize("scope", ["pixel", "patch"])
 @pytest.mark.parametrize("mode", MODES)
-def test_cpu_float32_close_to_reference_float64(mode):
+def test_cpu_float32_close_to_reference_float64(mode, scope):
     sc = random_scene(30, W, H, seed=11, n_ch=3, n_reg=1)
     bg = torch.tensor([0.1, 0.0, 0.4])
-    oc, gc = render_and_grad(sc, W, H, "cpu", mode, k_max=4, background=bg)
-    o64, g64 = render_and_grad(sc, W, H, "reference", mode, dtype=torch.float64, k_max=4, background=bg)
+    oc, gc = render_and_grad(sc, W, H, "cpu", mode, k_max=4, background=bg, k_max_scope=scope)
+    o64, g64 = render_and_grad(sc, W, H, "reference", mode, dtype=torch.float64, k_max=4, background=bg,
+                               k_max_scope=scope)
     assert_same(oc, gc, o64, g64, OUT_ATOL64, GRAD_RTOL64)
 
 

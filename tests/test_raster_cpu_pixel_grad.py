@@ -72,7 +72,7 @@ def _splats(sc: dict, cam: Camera):
 
 
 def _render_and_grad(ins: dict, rd, cam: Camera, mode: str, backend: str, window: int = EXACT,
-                     background: torch.Tensor | None = None, k_max: int = 8, seed: int = 1):
+                     background: torch.Tensor | None = None, k_max: int = 8, seed: int = 1, scope: str = "pixel"):
     """Render, back-propagate a loss weighting every output pixel differently; (output, grads)."""
     from smgs.raster import cpu
 
@@ -80,9 +80,11 @@ def _render_and_grad(ins: dict, rd, cam: Camera, mode: str, backend: str, window
     bg = None if background is None else background.clone().requires_grad_(True)
     args = [leaves[k] for k in KEYS] + [cam.width, cam.height]
     if backend == "cpu":
-        out = cpu.rasterize_splats_cpu(*args, mode=mode, k_max=k_max, background=bg, ray_depth=rd, window=window)
+        out = cpu.rasterize_splats_cpu(*args, mode=mode, k_max=k_max, background=bg, ray_depth=rd, window=window,
+                                       k_max_scope=scope)
     else:
-        out = rasterize_splats(*args, mode=mode, k_max=k_max, background=bg, backend=backend, ray_depth=rd)
+        out = rasterize_splats(*args, mode=mode, k_max=k_max, background=bg, backend=backend, ray_depth=rd,
+                               k_max_scope=scope)
     g = torch.Generator().manual_seed(seed)
     wt = lambda t: torch.rand(t.shape, generator=g)  # noqa: E731
     loss = (out.rgb * wt(out.rgb)).sum() + (out.alpha * wt(out.alpha)).sum() + 0.1 * (out.depth * wt(out.depth)).sum()
@@ -106,15 +108,16 @@ def _assert_grads_close(g_cpu: dict, g_ref: dict) -> None:
         assert err <= GRAD_RTOL32 * scale, f"gradient of {k}: max error {err:.3g}, scale {scale:.3g}"
 
 
+@pytest.mark.parametrize("scope", ["pixel", "patch"])   # patch: the head need not come first (docs/kmax-scope.md)
 @pytest.mark.parametrize("scene", ["crowded", "crossing"])
 @pytest.mark.parametrize("mode", MODES)
-def test_per_pixel_gradients_match_the_reference_exact_order(cpu_backend, mode, scene):
+def test_per_pixel_gradients_match_the_reference_exact_order(cpu_backend, mode, scene, scope):
     cam = _camera(40, 32)
     sc = _crowded(160, seed=3) if scene == "crowded" else _crossing()
     ins, rd = _splats(sc, cam)
     bg = torch.tensor([0.2, 0.5, 0.9])
-    oc, gc = _render_and_grad(ins, rd, cam, mode, "cpu", background=bg)
-    orf, gr = _render_and_grad(ins, rd, cam, mode, "reference", background=bg)
+    oc, gc = _render_and_grad(ins, rd, cam, mode, "cpu", background=bg, scope=scope)
+    orf, gr = _render_and_grad(ins, rd, cam, mode, "reference", background=bg, scope=scope)
     glob = rasterize_splats(*[ins[k] for k in KEYS], cam.width, cam.height, mode=mode, k_max=8, background=bg,
                             backend="reference")
     assert (orf.rgb - glob.rgb).abs().max() > 0.05     # the per-pixel order differs visibly from the global
@@ -122,6 +125,9 @@ def test_per_pixel_gradients_match_the_reference_exact_order(cpu_backend, mode, 
     torch.testing.assert_close(oc.alpha, orf.alpha, rtol=0, atol=OUT_ATOL32)
     torch.testing.assert_close(oc.depth, orf.depth, rtol=0, atol=8 * OUT_ATOL32)   # depths ~3-5
     assert torch.equal(oc.stats.n_contrib, orf.stats.n_contrib)
+    assert (oc.stats.list_end is None) == (scope == "pixel") == (orf.stats.list_end is None)
+    if scope == "patch":
+        assert torch.equal(oc.stats.list_end, orf.stats.list_end)
     _assert_grads_close(gc, gr)
 
 

@@ -110,6 +110,10 @@ def assert_same(o, g, o_ref, g_ref, out_atol, grad_rtol):
     torch.testing.assert_close(cpu32(o.depth), cpu32(o_ref.depth), rtol=0, atol=4 * out_atol)
     assert torch.equal(o.stats.n_contrib.cpu(), o_ref.stats.n_contrib.cpu())
     assert o.stats.k_max == o_ref.stats.k_max
+    assert o.stats.scope == o_ref.stats.scope
+    assert (o.stats.list_end is None) == (o_ref.stats.list_end is None)
+    if o_ref.stats.list_end is not None:   # patch scope: the emulated tile lists are the kernel's
+        assert torch.equal(o.stats.list_end.cpu(), o_ref.stats.list_end.cpu())
     if o_ref.reg is not None:
         torch.testing.assert_close(cpu32(o.reg), cpu32(o_ref.reg), rtol=1e-5, atol=out_atol)
     else:
@@ -129,37 +133,41 @@ def assert_same(o, g, o_ref, g_ref, out_atol, grad_rtol):
 W, H = 37, 29   # 3x2 tiles, partial tiles on both edges
 
 
+@pytest.mark.parametrize("scope", ["pixel", "patch"])   # docs/kmax-scope.md
 @pytest.mark.parametrize("k_max", [2, 128])   # below and above the splats overlapping a pixel
 @pytest.mark.parametrize("mode", MODES)
-def test_cuda_matches_reference_float32(mode, k_max):
+def test_cuda_matches_reference_float32(mode, k_max, scope):
     sc = random_scene(40, W, H, seed=k_max)
     bg = torch.tensor([0.2, 0.5, 0.9])
-    oc, gc = render_and_grad(sc, W, H, BACKEND, mode, device=DEV, k_max=k_max, background=bg)
-    orf, gr = render_and_grad(sc, W, H, "reference", mode, k_max=k_max, background=bg)
+    kw = dict(k_max=k_max, background=bg, k_max_scope=scope)
+    oc, gc = render_and_grad(sc, W, H, BACKEND, mode, device=DEV, **kw)
+    orf, gr = render_and_grad(sc, W, H, "reference", mode, **kw)
     assert oc.rgb.device.type == DEV
     assert oc.stats.n_contrib.max() > 2    # so k_max = 2 truncates somewhere
     assert 0 < oc.stats.pairs_evaluated < orf.stats.pairs_evaluated   # tiling skipped pairs
     assert_same(oc, gc, orf, gr, OUT_ATOL32, GRAD_RTOL32)
 
 
-@pytest.mark.parametrize("k_max", [3, 128])
+@pytest.mark.parametrize("scope", ["pixel", "patch"])
+@pytest.mark.parametrize("k_max", [3, 128, 300])   # 300 (patch): a tile head past one shared-memory batch
 @pytest.mark.parametrize("mode", MODES)
-def test_cuda_matches_reference_crowded_tiles(mode, k_max):
+def test_cuda_matches_reference_crowded_tiles(mode, k_max, scope):
     """More splats per tile than one shared-memory batch holds (256 rows), pixels that stop at
     T < 1e-4, and (k_max = 128) softmax heads of dozens of entries."""
     sc = random_scene(700, 40, 30, seed=3)
     sc["opacities"] = 0.3 + 0.6 * sc["opacities"]
-    oc, gc = render_and_grad(sc, 40, 30, BACKEND, mode, device=DEV, k_max=k_max)
-    orf, gr = render_and_grad(sc, 40, 30, "reference", mode, k_max=k_max)
+    oc, gc = render_and_grad(sc, 40, 30, BACKEND, mode, device=DEV, k_max=k_max, k_max_scope=scope)
+    orf, gr = render_and_grad(sc, 40, 30, "reference", mode, k_max=k_max, k_max_scope=scope)
     assert orf.stats.n_contrib.max() > 20
     assert_same(oc, gc, orf, gr, 2 * OUT_ATOL32, 2 * GRAD_RTOL32)   # longer chains
 
 
+@pytest.mark.parametrize("scope", ["pixel", "patch"])
 @pytest.mark.parametrize("mode", ["softmax_only", "softmax_gs", "3dgs"])
-def test_cuda_matches_reference_printed_eq15_one_channel_and_regulariser(mode):
+def test_cuda_matches_reference_printed_eq15_one_channel_and_regulariser(mode, scope):
     """nch != 3 takes the kernels' general channel path (state in global memory)."""
     sc = random_scene(30, W, H, seed=5, n_ch=1, n_reg=2)
-    kw = dict(k_max=3, eq15="printed", reg_depth_scale=0.7, background=torch.tensor([0.3]))
+    kw = dict(k_max=3, eq15="printed", reg_depth_scale=0.7, background=torch.tensor([0.3]), k_max_scope=scope)
     oc, gc = render_and_grad(sc, W, H, BACKEND, mode, device=DEV, **kw)
     orf, gr = render_and_grad(sc, W, H, "reference", mode, **kw)
     assert oc.rgb.shape == (H, W, 1) and oc.reg.shape == (H, W, 5)

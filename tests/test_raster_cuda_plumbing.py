@@ -107,7 +107,8 @@ class StandInExtension:
             mode={(False, False): "3dgs", (True, False): "gef_only", (False, True): "softmax_only",
                   (True, True): "softmax_gs"}[(v["use_gef"], v["use_softmax"])],
             k_max=v["k_max"], background=opt(v["background"]), eq15="solved" if v["solved"] else "printed",
-            reg_values=ins.get("reg_values"), reg_depth_scale=v["reg_scale"])
+            reg_values=ins.get("reg_values"), reg_depth_scale=v["reg_scale"],
+            k_max_scope="patch" if v["patch"] else "pixel")
         return out, ins
 
     def forward(self, *args):
@@ -129,7 +130,9 @@ class StandInExtension:
         tiles = -(-v["width"] // K.TILE_SIZE) * -(-v["height"] // K.TILE_SIZE)
         outs = dict(rgb=out.rgb, alpha=out.alpha, depth=out.depth,
                     reg=out.reg if R else torch.zeros(v["height"], v["width"], 0),
-                    n_contrib=out.stats.n_contrib.int(), T_final=1 - out.alpha, last=torch.full_like(out.alpha, 7).int(),
+                    n_contrib=out.stats.n_contrib.int(), T_final=1 - out.alpha,
+                    # `last` is the list end the kernel reports (1 + the last composited list position)
+                    last=(torch.full_like(out.alpha, 7) if out.stats.list_end is None else out.stats.list_end).int(),
                     pairs=torch.tensor([12345]), pk=pk, ranges=torch.full((tiles, 2), 3, dtype=torch.int32),
                     tile_list=torch.arange(5, dtype=torch.int32))
         self.saved = outs
@@ -183,7 +186,7 @@ def run(fn, sc, w, h, mode, **kw):
     ins = {k: sc[k].clone().requires_grad_(True) for k in names}
     bg = torch.tensor([0.2, 0.5, 0.7][:sc["colors"].shape[1]], requires_grad=True)
     out = fn(*[ins[k] for k in KEYS], w, h, mode, kw.pop("k_max", 3), bg, kw.pop("eq15", "solved"),
-             ins.get("reg_values"), kw.pop("reg_depth_scale", 1.0))
+             ins.get("reg_values"), kw.pop("reg_depth_scale", 1.0), K.T_MIN, kw.pop("scope", "pixel"))
     g = torch.Generator().manual_seed(9)
     loss = sum((t * torch.rand(t.shape, generator=g)).sum() for t in (out.rgb, out.alpha, out.depth))
     if out.reg is not None:
@@ -193,20 +196,22 @@ def run(fn, sc, w, h, mode, **kw):
 
 
 @pytest.mark.parametrize("mode", MODES)
-@pytest.mark.parametrize("n_ch,n_reg,eq15", [(3, 0, "solved"), (1, 2, "printed")])
-def test_wrapper_plumbing_matches_the_reference(mode, n_ch, n_reg, eq15):
+@pytest.mark.parametrize("n_ch,n_reg,eq15,scope", [(3, 0, "solved", "pixel"), (1, 2, "printed", "pixel"),
+                                                   (3, 1, "solved", "patch")])
+def test_wrapper_plumbing_matches_the_reference(mode, n_ch, n_reg, eq15, scope):
     sc = scene(n_ch=n_ch, n_reg=n_reg)
     ext = StandInExtension()
 
     def via_wrapper(*a):
         return cuda_backend.composite(ext, *a)
 
-    def via_reference(m2, co, op, col, de, al, be, ga, w, h, mode, k_max, bg, eq, rv, rs):
+    def via_reference(m2, co, op, col, de, al, be, ga, w, h, mode, k_max, bg, eq, rv, rs, t_min, scope):
         return rasterize_splats_reference(m2, co, op, col, de, al, be, ga, w, h, mode=mode, k_max=k_max,
-                                          background=bg, eq15=eq, reg_values=rv, reg_depth_scale=rs)
+                                          background=bg, eq15=eq, reg_values=rv, reg_depth_scale=rs, t_min=t_min,
+                                          k_max_scope=scope)
 
-    ow, gw = run(via_wrapper, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6)
-    orf, gr = run(via_reference, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6)
+    ow, gw = run(via_wrapper, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6, scope=scope)
+    orf, gr = run(via_reference, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6, scope=scope)
     assert ext.calls == ["forward_torch", "backward_torch"]
     for a, b in ((ow.rgb, orf.rgb), (ow.alpha, orf.alpha), (ow.depth, orf.depth)):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
@@ -214,6 +219,10 @@ def test_wrapper_plumbing_matches_the_reference(mode, n_ch, n_reg, eq15):
     if ow.reg is not None:
         torch.testing.assert_close(ow.reg, orf.reg, rtol=0, atol=0)
     assert torch.equal(ow.stats.n_contrib, orf.stats.n_contrib) and ow.stats.k_max == orf.stats.k_max
+    assert ow.stats.scope == orf.stats.scope == scope
+    assert (ow.stats.list_end is None) == (scope == "pixel")
+    if scope == "patch":
+        assert torch.equal(ow.stats.list_end, orf.stats.list_end)
     assert ow.stats.pairs_evaluated == 12345
     use_gef, use_soft = mode_flags(mode)
     for k, want in gr.items():

@@ -56,3 +56,23 @@ def test_the_2d_patterns_keep_their_own_initial_beta():
     cell = _cell("+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]", "grid.methods=[softmax_gs]")
     s = resolved_settings("softmax_gs", method_settings(cell), run_settings(cell))
     assert s["gaussians"]["beta"]["init"] == 20.0 == pattern_config("softmax_gs", cap=4).gaussians.beta.init
+
+
+def test_the_k_max_scope_is_part_of_the_identity_and_reaches_the_trainer():
+    """method.train.k_max_scope (docs/kmax-scope.md) from the method yaml into the resolved settings
+    (so the result hash) and the TrainConfig; an unknown scope is refused by name."""
+    import pytest
+
+    from baselines.registry import resolved_settings
+    from protocols.run_settings import method_settings, run_settings
+    from smgs.train.config import TrainConfig, from_dict
+
+    base = ("grid.datasets=[procedural]", "grid.methods=[softmax_gs]", "protocol=cpu")
+    pixel, patch = _cell(*base), _cell(*base, "method.train.k_max_scope=patch")
+    assert pixel["method"]["train"]["k_max_scope"] == "pixel"
+    s = resolved_settings("softmax_gs", method_settings(patch), run_settings(patch))
+    assert s["k_max_scope"] == "patch"
+    assert result_hash(pixel) != result_hash(patch)
+    assert from_dict(TrainConfig, {"k_max_scope": "patch"}).k_max_scope == "patch"
+    with pytest.raises((ValueError, TypeError), match="k_max_scope"):
+        from_dict(TrainConfig, {"k_max_scope": "tile"})

@@ -13,7 +13,7 @@ from smgs.raster import constants as K
 from smgs.raster.projection import project_gaussians
 from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import eval_sh
-from smgs.raster.types import Eq15, RayDepth, RenderOutput, RenderStats, mode_flags
+from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats, mode_flags, scope_is_patch
 
 # name -> (module, function); every backend takes the same arguments, t_min included. Imported
 # lazily so that listing backends never compiles or loads a kernel.
@@ -135,7 +135,8 @@ def _on_host(*args, **kwargs) -> RenderOutput:
         return out
     move = lambda t: None if t is None else t.to(device)  # noqa: E731
     return RenderOutput(rgb=move(out.rgb), alpha=move(out.alpha), depth=move(out.depth),
-                        stats=RenderStats(move(out.stats.n_contrib), out.stats.pairs_evaluated, out.stats.k_max),
+                        stats=RenderStats(move(out.stats.n_contrib), out.stats.pairs_evaluated, out.stats.k_max,
+                                          out.stats.scope, move(out.stats.list_end)),
                         reg=move(out.reg), leaders=move(out.leaders))
 
 
@@ -160,6 +161,7 @@ def rasterize_splats(
     t_min: float = K.T_MIN,
     ray_depth: RayDepth | None = None,
     leaders: bool = False,
+    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
 ) -> RenderOutput:
     """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
 
@@ -178,7 +180,9 @@ def rasterize_splats(
     tensors through differentiable host copies), not on cuda. ``leaders``: the output's ``leaders``
     map too (``RenderOutput``; for the view-consistency metric): the cpu backend renders it through
     its per-pixel kernel (no ``reg_values``); cuda has no such kernel, so there the splats are
-    composited on host copies (cpu, else reference) and the outputs moved back.
+    composited on host copies (cpu, else reference) and the outputs moved back. ``k_max_scope``:
+    what the softmax head is (docs/kmax-scope.md): ``"pixel"``, each pixel's first k_max composited
+    splats; ``"patch"``, the splats at positions < k_max of its 16x16 tile's depth-sorted list.
     """
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
@@ -186,6 +190,7 @@ def rasterize_splats(
         raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
     if k_max < 0:
         raise ValueError(f"k_max must be >= 0, got {k_max}")
+    scope_is_patch(k_max_scope)   # refuses an unknown scope
     if not 0.0 <= t_min < 1.0:
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     if ray_depth is not None:
@@ -201,14 +206,15 @@ def rasterize_splats(
     if name == "host" or (leaders and name == "cuda"):
         return _on_host(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
                         mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-                        reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=leaders)
+                        reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=leaders,
+                        k_max_scope=k_max_scope)
     fn = _load_backend(name)
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
     if leaders:
         extra["leaders"] = True
     return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
               mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-              reg_depth_scale=reg_depth_scale, t_min=t_min, **extra)
+              reg_depth_scale=reg_depth_scale, t_min=t_min, k_max_scope=k_max_scope, **extra)
 
 
 def rasterize(
@@ -235,6 +241,7 @@ def rasterize(
     t_min: float = K.T_MIN,
     sort: str = "global",
     leaders: bool = False,
+    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
 
@@ -247,7 +254,8 @@ def rasterize(
     response peaks (StopThePop; ``smgs.raster.ray_depth``; backends as ``rasterize_splats``). The
     order is not differentiated; the compositing and its gradients are those of the mode.
     ``leaders``: the output's ``leaders`` map too, as indices of the Gaussians given here
-    (``rasterize_splats`` says how each backend renders it).
+    (``rasterize_splats`` says how each backend renders it). ``k_max_scope``: ``"pixel"`` or
+    ``"patch"`` (``rasterize_splats``; docs/kmax-scope.md).
     """
     check_sort(sort)
     n = means3d.shape[0]
@@ -285,7 +293,7 @@ def rasterize(
                            pick(alpha), pick(beta), pick(gamma), camera.width, camera.height,
                            mode=mode, k_max=k_max, background=background, backend=backend, eq15=eq15,
                            reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale, t_min=t_min,
-                           ray_depth=rd, leaders=leaders)
+                           ray_depth=rd, leaders=leaders, k_max_scope=k_max_scope)
     if out.leaders is not None:   # projected index -> the caller's index
         out.leaders = torch.where(out.leaders >= 0, ids[out.leaders.clamp_min(0)], out.leaders)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)

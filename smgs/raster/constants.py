@@ -56,6 +56,11 @@ TILE_SIZE = 16
 DEFAULT_K_MAX = 128
 """Softmax competition applies to the first k_max splats that reach a pixel (paper, Sec. 3.3)."""
 
+DEFAULT_K_MAX_SCOPE = "pixel"
+"""What "the first k_max" counts (docs/kmax-scope.md): ``pixel``, each pixel's first k_max composited
+splats; ``patch``, the first k_max entries of its tile's depth-sorted list, the same for every pixel
+of a tile (the paper's "closest K Gaussians for each image patch", Sec. 3)."""
+
 EXP_ARG_MIN = -80.0
 """Arguments to exp are clamped here: exp(-80) ~ 1.8e-35 is already far below every threshold, and
 PyTorch's CPU exp is ~10x slower below -88 (denormals)."""

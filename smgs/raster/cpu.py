@@ -28,7 +28,7 @@ from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
                                      kernel_output)
-from smgs.raster.types import Eq15, RayDepth, RenderOutput
+from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # The torch glue first; the compositing core's three units build in parallel with it (ninja).
@@ -64,9 +64,10 @@ class _RasterizeCPU(torch.autograd.Function):
         st = settings
         nthreads = torch.get_num_threads()
         (rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, ids, pk, box, toff, tlist, soff,
-         spos) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
-                              opt(background), opt(reg_values), st.width, st.height, st.use_gef, st.use_softmax,
-                              st.k_max, st.solved, st.reg_depth_scale, nthreads, st.t_min)
+         spos, list_end) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
+                                       opt(background), opt(reg_values), st.width, st.height, st.use_gef,
+                                       st.use_softmax, st.k_max, st.solved, st.reg_depth_scale, nthreads, st.t_min,
+                                       st.patch)
         ctx.save_for_backward(alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos,
                               opt(background))
         ctx.settings = st
@@ -74,11 +75,11 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.n_channels = colors.shape[1]
         ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
         ctx.nthreads = nthreads   # the backward sums per-tile rows in the forward's order
-        ctx.mark_non_differentiable(cnt, pairs, t_final)
-        return rgb, alpha_out, depth, reg, cnt, pairs, t_final
+        ctx.mark_non_differentiable(cnt, pairs, t_final, list_end)
+        return rgb, alpha_out, depth, reg, cnt, pairs, t_final, list_end
 
     @staticmethod
-    def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t):
+    def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t, _g_end):
         alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
@@ -86,7 +87,7 @@ class _RasterizeCPU(torch.autograd.Function):
         grads = extension().backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
             spos, bg, ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax,
-            st.k_max, st.solved, st.reg_depth_scale, ctx.nthreads)
+            st.k_max, st.solved, st.reg_depth_scale, ctx.nthreads, st.patch)
         return kernel_grads(ctx, grads, g_rgb, t_final)
 
 
@@ -104,27 +105,27 @@ class _RasterizePixelCPU(torch.autograd.Function):
         opt = lambda t: empty if t is None else t  # noqa: E731
         st = settings
         (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos, order,
-         order_off, leaders) = extension().forward_pixel(
+         order_off, leaders, list_end) = extension().forward_pixel(
             means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background), coefs,
             intr, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved, torch.get_num_threads(),
-            st.t_min, window, any(ctx.needs_input_grad[:9]), lead_alpha)
+            st.t_min, window, any(ctx.needs_input_grad[:9]), lead_alpha, st.patch)
         ctx.save_for_backward(alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off,
                               opt(background))
         ctx.settings = st
         ctx.n_splats = means2d.shape[0]
         ctx.n_channels = colors.shape[1]
-        ctx.mark_non_differentiable(cnt, pairs, t_final, leaders)
-        return rgb, alpha_out, depth, cnt, pairs, t_final, leaders
+        ctx.mark_non_differentiable(cnt, pairs, t_final, leaders, list_end)
+        return rgb, alpha_out, depth, cnt, pairs, t_final, leaders, list_end
 
     @staticmethod
-    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t, _g_lead):
+    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t, _g_lead, _g_end):
         alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
         grads = extension().backward_pixel(
             g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, ids, pk, box, toff, tlist, soff, spos, order, order_off,
             bg, ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
-            torch.get_num_threads(), st.t_min)
+            torch.get_num_threads(), st.t_min, st.patch)
         # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window,
         # lead_alpha
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 5
@@ -146,10 +147,11 @@ def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None, w
     else:
         coefs = ray_depth.coefs.detach().to(torch.float32).contiguous()
         intr = means2d.new_tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy])   # on its device
-    rgb, alpha_out, depth, cnt, pairs, _, leaders = _RasterizePixelCPU.apply(
+    rgb, alpha_out, depth, cnt, pairs, _, leaders, list_end = _RasterizePixelCPU.apply(
         means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, coefs, intr, st, int(window),
         -1.0 if lead_alpha is None else float(lead_alpha))
-    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if lead_alpha is not None else None)
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if lead_alpha is not None else None,
+                         list_end)
 
 
 def rasterize_splats_cpu(
@@ -173,15 +175,17 @@ def rasterize_splats_cpu(
     ray_depth: RayDepth | None = None,
     window: int = K.SORT_WINDOW,
     leaders: bool = False,
+    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
 ) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
     ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (no
     ``reg_values``). ``leaders`` renders through the per-pixel kernel (a scalar path, in either
     order) to give the leading-splat map too."""
-    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
     if ray_depth is not None or leaders:
         return _per_pixel(st, args, ray_depth, window, K.LEADER_ALPHA if leaders else None)
-    rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCPU.apply(*args, st)
-    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs)
+    rgb, alpha_out, depth, reg, cnt, pairs, _, list_end = _RasterizeCPU.apply(*args, st)
+    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs,
+                         list_end=list_end)

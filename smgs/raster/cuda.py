@@ -28,7 +28,7 @@ from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
 from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
                                      kernel_output)
-from smgs.raster.types import Eq15, RenderOutput
+from smgs.raster.types import Eq15, KMaxScope, RenderOutput
 
 log = logging.getLogger(__name__)
 
@@ -103,18 +103,19 @@ class _RasterizeCUDA(torch.autograd.Function):
         rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, pk, ranges, tile_list = ext.forward(
             means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
             opt(reg_values), st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
-            st.reg_depth_scale)
+            st.reg_depth_scale, st.patch)
         ctx.save_for_backward(alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, opt(background))
         ctx.settings = st
         ctx.ext = ext
         ctx.n_splats = means2d.shape[0]
         ctx.n_channels = colors.shape[1]
         ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
-        ctx.mark_non_differentiable(cnt, pairs, t_final)
-        return rgb, alpha_out, depth, reg, cnt, pairs, t_final
+        ctx.mark_non_differentiable(cnt, pairs, t_final, last)
+        # `last` (1 + the tile-list position of the last composited splat) is the stats' list_end
+        return rgb, alpha_out, depth, reg, cnt, pairs, t_final, last
 
     @staticmethod
-    def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t):
+    def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t, _g_last):
         alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
@@ -122,18 +123,20 @@ class _RasterizeCUDA(torch.autograd.Function):
         grads = ctx.ext.backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg,
             ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
-            st.solved, st.reg_depth_scale, HEAD_BUDGET_BYTES)
+            st.solved, st.reg_depth_scale, HEAD_BUDGET_BYTES, st.patch)
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=2)
 
 
 def composite(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
-              k_max, background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN) -> RenderOutput:
+              k_max, background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN,
+              k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE) -> RenderOutput:
     """``rasterize_splats_cuda`` with the extension passed in (the argument plumbing is tested
     without a GPU by passing a stand-in extension). ``t_min`` is already compiled into ``ext``."""
-    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min)
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
-    rgb, alpha_out, depth, reg, cnt, pairs, _ = _RasterizeCUDA.apply(*args, st, ext)
-    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs)
+    rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDA.apply(*args, st, ext)
+    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs,
+                         list_end=last)
 
 
 def rasterize_splats_cuda(
@@ -154,10 +157,11 @@ def rasterize_splats_cuda(
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
     t_min: float = K.T_MIN,
+    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
 ) -> RenderOutput:
     """Composite projected splats on a CUDA device: float32 tensors on one device, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. ``t_min``
     (the early-stop transmittance) is compiled into the kernel: a value other than the default
     costs one more build."""
     return composite(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                     mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min)
+                     mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, k_max_scope)

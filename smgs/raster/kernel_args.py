@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
-from smgs.raster.types import RenderOutput, RenderStats, mode_flags
+from smgs.raster.types import RenderOutput, RenderStats, mode_flags, scope_is_patch
 
 # Position of each tensor input of the compiled autograd Functions (ctx.needs_input_grad order).
 INPUTS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma", "background",
@@ -27,13 +27,14 @@ class CompositeSettings:
     solved: bool
     reg_depth_scale: float
     t_min: float
+    patch: bool = False   # k_max scope "patch" (docs/kmax-scope.md)
 
 
 def composite_settings(width: int, height: int, mode: str, k_max: int, eq15: str, reg_depth_scale: float,
-                       t_min: float) -> CompositeSettings:
+                       t_min: float, k_max_scope: str = "pixel") -> CompositeSettings:
     use_gef, use_softmax = mode_flags(mode)
     return CompositeSettings(int(width), int(height), use_gef, use_softmax, int(k_max), eq15 == "solved",
-                             float(reg_depth_scale), float(t_min))
+                             float(reg_depth_scale), float(t_min), scope_is_patch(k_max_scope))
 
 
 def kernel_inputs(st: CompositeSettings, means2d, conics, opacities, colors, depths, alpha, beta, gamma,
@@ -58,10 +59,11 @@ def kernel_grads(ctx, grads, g_rgb: torch.Tensor, t_final: torch.Tensor, n_setti
 
 def kernel_output(st: CompositeSettings, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
                   reg: torch.Tensor | None, n_contrib: torch.Tensor, pairs: torch.Tensor,
-                  leaders: torch.Tensor | None = None) -> RenderOutput:
+                  leaders: torch.Tensor | None = None, list_end: torch.Tensor | None = None) -> RenderOutput:
     """The RenderOutput of a kernel's outputs (``reg`` None where no values were regularised,
-    ``leaders`` None where the map was not asked for)."""
+    ``leaders`` None where the map was not asked for; ``list_end`` is kept in patch scope only)."""
     stats = RenderStats(n_contrib=n_contrib.long(), pairs_evaluated=int(pairs.item()),
-                        k_max=st.k_max if st.use_softmax else 2**31 - 1)
+                        k_max=st.k_max if st.use_softmax else 2**31 - 1, scope="patch" if st.patch else "pixel",
+                        list_end=list_end.long() if st.patch and list_end is not None else None)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats, reg=reg,
                         leaders=None if leaders is None else leaders.long())

@@ -27,6 +27,12 @@ inf·0 or a catastrophic cancellation (each is exercised by tests/test_raster_st
 
 The depth channel is composited as one more colour channel (so it is rescaled with the colour,
 as Algorithm 1 does for c_past) and divided by alpha at the end.
+
+The softmax head (docs/kmax-scope.md): in ``pixel`` scope a pixel's first k_max composited splats;
+in ``patch`` scope the splats at positions < k_max of its tile's depth-sorted list, which this dense
+renderer takes from an emulation of the compiled backends' binning (``smgs.raster.tiles``). The
+running means are updated by head steps only (a tail step never precedes a head step in the global
+order, so this changes nothing there; in a per-pixel order under patch scope it can).
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ from dataclasses import dataclass
 import torch
 
 from smgs.raster import constants as K
-from smgs.raster.types import Eq15, RayDepth, RenderOutput, RenderStats, mode_flags
+from smgs.raster.tiles import list_positions
+from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats, mode_flags, scope_is_patch
 
 
 def _sorted_order(depths: torch.Tensor) -> torch.Tensor:
@@ -248,12 +255,14 @@ def rasterize_splats_reference(
     t_min: float = K.T_MIN,
     ray_depth: RayDepth | None = None,
     leaders: bool = False,
+    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
 ) -> RenderOutput:
     """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments. With
     ``ray_depth`` each pixel takes its splats in its own exact order (``smgs.raster.ray_depth``),
     else all in the order of ``depths``. ``leaders``: also the leading-splat map (the first two
     composited splats with a >= constants.LEADER_ALPHA per pixel)."""
     use_gef, use_softmax = mode_flags(mode)
+    patch = scope_is_patch(k_max_scope)
     device, dtype = means2d.device, means2d.dtype
     n_ch = colors.shape[1]
     P = width * height
@@ -272,6 +281,10 @@ def rasterize_splats_reference(
     n_reg = 0 if reg_values is None else reg_values.shape[1]
     reg = torch.zeros(P, 1 + 2 * n_reg, device=device, dtype=dtype) if n_reg else None
     d_front = torch.zeros(P, device=device, dtype=dtype)
+    n_head = torch.zeros(P, device=device, dtype=torch.long)      # head steps taken, for d_front
+    list_end = torch.zeros(P, device=device, dtype=torch.long) if patch else None
+    if patch:   # [tiles, N] list positions, and each pixel's tile
+        positions, pixel_tile = list_positions(means2d, conics, opacities, depths, width, height)
     track = use_softmax and k_max > 0
     lead = torch.full((P, 2), -1, device=device, dtype=torch.long) if leaders else None
     one = torch.ones((), device=device, dtype=dtype)
@@ -284,6 +297,7 @@ def rasterize_splats_reference(
         order = _pixel_order(means2d, conics, depths, ray_depth, px, py)
         steps = ((order[:, j], _splat(order[:, j], *inputs)) for j in range(order.shape[1]))
     for k, sp in steps:
+        pos = (positions[pixel_tile, k] if torch.is_tensor(k) else positions[:, k][pixel_tile]) if patch else None
         dx = px - sp.mx
         dy = py - sp.my
         q = torch.clamp(quadratic_form(dx, dy, sp.conic), min=0.0)  # -p >= 0
@@ -294,12 +308,13 @@ def rasterize_splats_reference(
         if not bool(reach.any()):
             continue
         stop = reach & (T * (1 - a) < t_min * (1 - K.T_STOP_SLACK))
+        head_k = (pos < k_max) if patch else (count < k_max)   # the step's place in the softmax head
         if use_softmax:   # the stop holds for vanilla steps only: in the head a later splat can win
-            stop = stop & (count >= k_max)
+            stop = stop & ~head_k
         done = done | stop
         reach = reach & ~stop
         p = -q
-        in_head = reach & (count < k_max)
+        in_head = reach & head_k
         soft = in_head & (A > 0) if use_softmax else torch.zeros_like(reach)
         van = reach & ~soft
 
@@ -307,8 +322,8 @@ def rasterize_splats_reference(
         if bool(van.any()):
             # a = ½ where the step does not apply keeps U = A + a·T > 0 (no NaN gradients).
             vs = vanilla_step(T, A, C, d_past, p_past, torch.where(van, a, half), p, sp.d, sp.col, track)
-            new_state = [torch.where(van[:, None] if v.dim() == 2 else van, v, o)
-                         for v, o in zip(vs, new_state)]
+            new_state = [torch.where(m[:, None] if v.dim() == 2 else m, v, o)
+                         for v, o, m in zip(vs, new_state, (van, van, van, van & in_head, van & in_head))]
         if bool(soft.any()):
             # Benign values where the step does not apply, so no branch produces NaN gradients.
             A_s = torch.where(soft, A, half)
@@ -322,15 +337,19 @@ def rasterize_splats_reference(
             lead = _take_leader(lead, reach & (a.detach() >= K.LEADER_ALPHA), k)
 
         if reg is not None:
-            first = in_head & (count == 0)
+            first = in_head & (n_head == 0)
             d_front = torch.where(first, sp.d.detach().expand(P), d_front)
             w = 1.0 / (1.0 + (sp.d.detach() - d_front) / reg_depth_scale)
             w = torch.where(in_head, w, torch.zeros_like(w))
             reg = reg + torch.cat([w[:, None], w[:, None] * sp.rv, w[:, None] * sp.rv * sp.rv], dim=1)
         count = count + reach.long()
+        n_head = n_head + in_head.long()
+        if list_end is not None:
+            list_end = torch.where(reach, torch.maximum(list_end, pos + 1), list_end)
 
     stats = RenderStats(n_contrib=count.reshape(height, width), pairs_evaluated=P * means2d.shape[0],
-                        k_max=k_max if use_softmax else 2**31 - 1)
+                        k_max=k_max if use_softmax else 2**31 - 1, scope=k_max_scope,
+                        list_end=None if list_end is None else list_end.reshape(height, width))
     return _output(T, A, C, background, stats, reg, lead, width, height)
 
 

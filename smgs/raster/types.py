@@ -9,6 +9,8 @@ import torch
 
 MODES: tuple[str, ...] = ("3dgs", "gef_only", "softmax_only", "softmax_gs")
 Eq15 = Literal["solved", "printed"]
+KMaxScope = Literal["pixel", "patch"]
+K_MAX_SCOPES: tuple[str, ...] = ("pixel", "patch")
 
 
 def mode_flags(mode: str) -> tuple[bool, bool]:
@@ -16,6 +18,15 @@ def mode_flags(mode: str) -> tuple[bool, bool]:
     if mode not in MODES:
         raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(MODES)}")
     return mode in ("gef_only", "softmax_gs"), mode in ("softmax_only", "softmax_gs")
+
+
+def scope_is_patch(scope: str) -> bool:
+    """Whether a k_max scope is ``patch`` (the softmax head is the tile list's first k_max entries)
+    rather than ``pixel`` (each pixel's first k_max composited splats); docs/kmax-scope.md."""
+    if scope not in K_MAX_SCOPES:
+        raise ValueError(f"unknown k_max scope {scope!r}; expected one of {', '.join(K_MAX_SCOPES)} "
+                         "(docs/kmax-scope.md)")
+    return scope == "patch"
 
 
 @dataclass
@@ -26,13 +37,19 @@ class RenderStats:
     pairs_evaluated: splat-pixel pairs the backend tested (backend-specific: the dense reference
         tests every pair, the tiled kernels only pairs inside a splat's tiles).
     frac_within_kmax: fraction of pixels reached by at least one splat whose composited splats all
-        fell within the first k_max (the paper's "coverage", 70-85% on Mip-NeRF360); 1.0 for modes
-        without softmax competition.
+        fell within the softmax head (the paper's "coverage", 70-85% on Mip-NeRF360): the first
+        k_max composited (``scope`` "pixel"), or the first k_max entries of the pixel's tile list
+        ("patch", read from ``list_end``); 1.0 for modes without softmax competition.
+    scope: the k_max scope rendered with (docs/kmax-scope.md).
+    list_end: [H, W] in patch scope (None in pixel scope): 1 + the furthest position in its tile's
+        list that each pixel composited (0 where none).
     """
 
     n_contrib: torch.Tensor
     pairs_evaluated: int
     k_max: int
+    scope: str = "pixel"
+    list_end: torch.Tensor | None = None
 
     @property
     def contributions(self) -> int:
@@ -48,7 +65,8 @@ class RenderStats:
         n = int(hit.sum())
         if n == 0:
             return 1.0
-        return float(((self.n_contrib <= self.k_max) & hit).sum()) / n
+        within = self.list_end <= self.k_max if self.list_end is not None else self.n_contrib <= self.k_max
+        return float((within & hit).sum()) / n
 
 
 @dataclass

@@ -153,7 +153,7 @@ def hparams(name: str) -> OptimConfig:
 class LossConfig:
     """(1 − λ)·L1 + λ·(1 − SSIM) + λβ·Var_ray(β) + λγ·Var_ray(γ) (supp. Sec. 6).
 
-    The variances are taken per pixel over the first k_max splats, each weighted by
+    The variances are taken per pixel over its softmax head (the first k_max splats, ``k_max_scope``), each weighted by
     w = 1 / (1 + (d − d_front) / reg_depth_scale), our bounded form of the paper's "inverse
     distance to the front-most Gaussian"; reg_depth_scale = ``reg_depth_scale_rel`` × extent, so a
     splat 1% of the scene extent behind the front one counts half (default). ``reg_space="log"``
@@ -247,13 +247,15 @@ class TrainConfig:
     """Everything one run of the splatting trainer needs. ``mode`` is the renderer mode
     (3dgs / gef_only / softmax_only / softmax_gs). ``t_min``: the renderer's early-stop threshold
     on the transmittance (default 1e-4, the 3DGS rule; it applies to vanilla steps only, so in
-    softmax modes never inside a pixel's first k_max splats; 0 turns it off everywhere,
-    ``smgs.raster.constants.T_MIN``)."""
+    softmax modes never inside the softmax head; 0 turns it off everywhere,
+    ``smgs.raster.constants.T_MIN``). ``k_max_scope``: what the softmax head is, each pixel's first
+    k_max composited splats (``pixel``) or its tile list's first k_max entries (``patch``)."""
 
     mode: str = "softmax_gs"
     steps: int = 30_000
     seed: int = 0
     k_max: int = K.DEFAULT_K_MAX
+    k_max_scope: Literal["pixel", "patch"] = K.DEFAULT_K_MAX_SCOPE   # docs/kmax-scope.md
     eq15: Literal["solved", "printed"] = "solved"
     backend: str = "auto"
     t_min: float = K.T_MIN

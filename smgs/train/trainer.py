@@ -179,7 +179,8 @@ class Trainer:
             alpha=g.alpha if self.use_gef else None,
             beta=g.beta if self.use_softmax else None,
             gamma=g.gamma if self.use_softmax else None,
-            mode=self.cfg.mode, k_max=self.cfg.k_max, sh_degree=deg_arg, background=background,
+            mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg_arg,
+            background=background,
             backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
             clamp_sh_colors=self.cfg.gaussians.clamp_colors, leaders=leaders)

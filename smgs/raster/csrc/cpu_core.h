@@ -23,6 +23,9 @@ struct Scene {
   int W = 0, H = 0, nch = 0, R = 0, S = 0, M = 0;
   int tiles_x = 0, tiles_y = 0;
   int kmax = 0;
+  // k_max scope (docs/kmax-scope.md): false = a pixel's first k_max composited splats form its
+  // softmax head; true = the tile-list entries at positions < k_max, the same for every pixel of a tile
+  bool patch = false;
   bool solved = true;
   float reg_scale = 1.f;
   const float* pk = nullptr;       // [M, S]
@@ -37,6 +40,9 @@ struct Scene {
 struct FwdOut {
   float *rgb, *alpha, *depth, *Tf, *reg;
   int32_t *last, *cnt;
+  // [H, W] or null: 1 + the furthest tile-list position composited (0 where none), for the patch
+  // scope's coverage statistic
+  int32_t* lend = nullptr;
   // per-pixel path only: [H, W, 2] the first two composited splats with a >= lead_alpha, as pk rows
   // (-1 where fewer), or null
   int32_t* lead = nullptr;

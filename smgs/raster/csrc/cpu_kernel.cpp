@@ -211,7 +211,7 @@ static void check_f32(const at::Tensor& t, const char* name) {
 
 static Scene make_scene(const at::Tensor& pk, const at::Tensor& box, const at::Tensor& toff,
                         const at::Tensor& tlist, const at::Tensor& bg, int W, int H, int nch, int R,
-                        int64_t kmax, bool solved, double reg_scale, int nthreads, double t_min) {
+                        int64_t kmax, bool solved, double reg_scale, int nthreads, double t_min, bool patch) {
   Scene sc;
   sc.W = W;
   sc.H = H;
@@ -222,6 +222,7 @@ static Scene make_scene(const at::Tensor& pk, const at::Tensor& box, const at::T
   sc.tiles_x = (W + kTileSize - 1) / kTileSize;
   sc.tiles_y = (H + kTileSize - 1) / kTileSize;
   sc.kmax = int(std::min<int64_t>(kmax, int64_t(1) << 24));  // float lane counters are exact to 2^24
+  sc.patch = patch;
   sc.solved = solved;
   sc.reg_scale = float(reg_scale);
   sc.pk = pk.data_ptr<float>();
@@ -300,42 +301,45 @@ static void check_splats(const at::Tensor& means2d, const at::Tensor& conics, co
 }
 
 // Returns [rgb, alpha, depth, reg, n_contrib, T_final, last, pairs, ids, pk, box, tile_off, tile_list,
-// splat_off, splat_pos].
+// splat_off, splat_pos, list_end]. patch: the k_max scope (Scene::patch); list_end [H, W]: 1 + the
+// furthest tile-list position each pixel composited (FwdOut::lend).
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
                                    at::Tensor colors, at::Tensor depths, at::Tensor alpha,
                                    at::Tensor beta, at::Tensor gamma, at::Tensor bg, at::Tensor regv,
                                    int64_t W, int64_t H, bool gef, bool soft, int64_t kmax, bool solved,
-                                   double reg_scale, int64_t nthreads, double t_min) {
+                                   double reg_scale, int64_t nthreads, double t_min, bool patch) {
   check_splats(means2d, conics, opac, colors, depths, alpha, beta, gamma, bg, gef, soft);
   if (regv.numel()) check_f32(regv, "reg_values");
   const int nch = int(colors.size(1));
   const int R = regv.numel() ? int(regv.size(1)) : 0;
   Prepared P = prepare(means2d, conics, opac, colors, depths, alpha, beta, gamma, regv, int(W), int(H), int(nthreads));
   Scene sc = make_scene(P.pk, P.box, P.toff, P.tlist, bg, int(W), int(H), nch, R, kmax, solved, reg_scale,
-                        int(nthreads), t_min);
+                        int(nthreads), t_min, patch);
   auto f32 = at::TensorOptions().dtype(at::kFloat);
   auto i32 = at::TensorOptions().dtype(at::kInt);
   at::Tensor rgb = at::empty({H, W, nch}, f32), a = at::empty({H, W}, f32), dep = at::empty({H, W}, f32),
                 Tf = at::empty({H, W}, f32), reg = at::empty({H, W, R ? 1 + 2 * R : 0}, f32),
-                last = at::empty({H, W}, i32), cnt = at::empty({H, W}, i32);
+                last = at::empty({H, W}, i32), cnt = at::empty({H, W}, i32), lend = at::empty({H, W}, i32);
   FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(),
-           R ? reg.data_ptr<float>() : nullptr, last.data_ptr<int32_t>(), cnt.data_ptr<int32_t>()};
+           R ? reg.data_ptr<float>() : nullptr, last.data_ptr<int32_t>(), cnt.data_ptr<int32_t>(),
+           lend.data_ptr<int32_t>()};
   int64_t pairs = forward_tiles(sc, o, gef, soft);
   at::Tensor tp = at::full({1}, pairs, at::TensorOptions().dtype(at::kLong));
-  return {rgb, a, dep, reg, cnt, Tf, last, tp, P.ids, P.pk, P.box, P.toff, P.tlist, P.soff, P.spos};
+  return {rgb, a, dep, reg, cnt, Tf, last, tp, P.ids, P.pk, P.box, P.toff, P.tlist, P.soff, P.spos, lend};
 }
 
 // sort="per_pixel" (cpu_pixel.cpp). coefs [N, 9] (smgs/raster/ray_depth.py), intr (fx, fy, cx, cy).
 // Returns [rgb, alpha, depth, n_contrib, T_final, pairs, ids, pk, box, tile_off, tile_list, splat_off,
-// splat_pos, order, order_off, leaders]: with keep_order the pixels' composited steps (PixelOrder in
-// cpu_core.h; else empty), which backward_pixel reads with the tensors after `pairs`; with
-// lead_alpha >= 0, leaders [H, W, 2]: each pixel's first two composited splats with a >= lead_alpha
-// (input indices, -1 where fewer; else empty).
+// splat_pos, order, order_off, leaders, list_end]: with keep_order the pixels' composited steps
+// (PixelOrder in cpu_core.h; else empty), which backward_pixel reads with the tensors after `pairs`;
+// with lead_alpha >= 0, leaders [H, W, 2]: each pixel's first two composited splats with
+// a >= lead_alpha (input indices, -1 where fewer; else empty); list_end as forward's.
 std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
                                       at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
                                       at::Tensor bg, at::Tensor coefs, at::Tensor intr, int64_t W, int64_t H,
                                       bool gef, bool soft, int64_t kmax, bool solved, int64_t nthreads,
-                                      double t_min, int64_t window, bool keep_order, double lead_alpha) {
+                                      double t_min, int64_t window, bool keep_order, double lead_alpha,
+                                      bool patch) {
   check_splats(means2d, conics, opac, colors, depths, alpha, beta, gamma, bg, gef, soft);
   check_f32(coefs, "coefs");
   check_f32(intr, "intrinsics");
@@ -347,7 +351,7 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
   const at::Tensor none = at::empty({0}, at::TensorOptions().dtype(at::kFloat));
   Prepared P = prepare(means2d, conics, opac, colors, depths, alpha, beta, gamma, none, int(W), int(H), int(nthreads));
   Scene sc = make_scene(P.pk, P.box, P.toff, P.tlist, bg, int(W), int(H), nch, 0, kmax, solved, 1.0, int(nthreads),
-                        t_min);
+                        t_min, patch);
   // the coefficients in pk row (depth) order
   const int64_t M = P.ids.numel();
   std::vector<float> cs(size_t(M) * 9);
@@ -357,9 +361,9 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
   auto f32 = at::TensorOptions().dtype(at::kFloat);
   auto i32 = at::TensorOptions().dtype(at::kInt);
   at::Tensor rgb = at::empty({H, W, nch}, f32), a = at::empty({H, W}, f32), dep = at::empty({H, W}, f32),
-             Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32);
+             Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32), lend = at::empty({H, W}, i32);
   FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(), nullptr,
-           nullptr, cnt.data_ptr<int32_t>()};
+           nullptr, cnt.data_ptr<int32_t>(), lend.data_ptr<int32_t>()};
   const bool lead = lead_alpha >= 0.0;
   at::Tensor leaders = lead ? at::empty({H, W, 2}, i32) : at::empty({0}, i32);
   if (lead) {
@@ -382,7 +386,7 @@ std::vector<at::Tensor> forward_pixel(at::Tensor means2d, at::Tensor conics, at:
       if (l[k] >= 0) l[k] = ids[l[k]];
   }
   return {rgb, a, dep, cnt, Tf, at::full({1}, pairs, at::TensorOptions().dtype(at::kLong)), P.ids, P.pk, P.box,
-          P.toff, P.tlist, P.soff, P.spos, opos, ooff, leaders};
+          P.toff, P.tlist, P.soff, P.spos, opos, ooff, leaders, lend};
 }
 
 // Backward of forward_pixel (kept with keep_order): its recorded order replayed. Returns the
@@ -392,13 +396,13 @@ std::vector<at::Tensor> backward_pixel(at::Tensor g_rgb, at::Tensor g_alpha, at:
                                        at::Tensor box, at::Tensor toff, at::Tensor tlist, at::Tensor soff,
                                        at::Tensor spos, at::Tensor order, at::Tensor order_off, at::Tensor bg,
                                        int64_t N, int64_t nch, int64_t W, int64_t H, bool gef, bool soft, int64_t kmax,
-                                       bool solved, int64_t nthreads, double t_min) {
+                                       bool solved, int64_t nthreads, double t_min, bool patch) {
   check_f32(g_rgb, "grad rgb");
   check_f32(g_alpha, "grad alpha");
   check_f32(g_depth, "grad depth");
   TORCH_CHECK(order_off.numel() == toff.numel(), "backward_pixel needs the order of a forward_pixel with keep_order");
   Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), 0, kmax, solved, 1.0, int(nthreads),
-                        t_min);
+                        t_min, patch);
   at::Tensor E = at::empty({tlist.numel(), padded(sc.S)}, at::TensorOptions().dtype(at::kFloat));
   BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(), nullptr,
            alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(), nullptr, nullptr};
@@ -415,13 +419,13 @@ std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tenso
                                     at::Tensor box, at::Tensor toff, at::Tensor tlist, at::Tensor soff,
                                     at::Tensor spos, at::Tensor bg,
                                     int64_t N, int64_t nch, int64_t R, int64_t W, int64_t H, bool gef, bool soft,
-                                    int64_t kmax, bool solved, double reg_scale, int64_t nthreads) {
+                                    int64_t kmax, bool solved, double reg_scale, int64_t nthreads, bool patch) {
   check_f32(g_rgb, "grad rgb");
   check_f32(g_alpha, "grad alpha");
   check_f32(g_depth, "grad depth");
   if (R) check_f32(g_reg, "grad reg");
   Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), int(R), kmax, solved, reg_scale,
-                        int(nthreads), kTMin);  // t_min is in `last`: the backward never tests it
+                        int(nthreads), kTMin, patch);  // t_min is in `last`: the backward never tests it
   const int S = sc.S;
   // one gradient row per tile-list entry (each tile fills its own rows), then per splat the sum
   // over its tiles in a fixed order: gradients do not depend on the number of threads

@@ -32,19 +32,23 @@ struct Pixel {
   bool done = false;
 };
 
+// Whether a step is in the softmax head: the pixel's first k_max composited splats, or (patch scope)
+// the tile's first k_max list entries -- in a re-sorted order those need not come first.
+inline bool in_head(const Scene& sc, const Pixel& px, int pos) { return (sc.patch ? pos : px.cnt) < sc.kmax; }
+
 // One compositing step of fwd_block (cpu_tiles.h) for one pixel.
 template <bool SOFT>
 inline void step(const Scene& sc, Pixel& px, float* C, const float* s, const Entry& e) {
   const int nch = sc.nch;
   const float a = e.a, d = s[P_D];
   const float T0 = px.T * (1.f - a);
-  if (T0 < sc.tstop && (!SOFT || px.cnt >= sc.kmax)) {   // vanilla steps only (constants.T_MIN)
+  const bool head = SOFT && in_head(sc, px, e.pos);
+  if (T0 < sc.tstop && !head) {   // vanilla steps only (constants.T_MIN)
     px.done = true;
     return;
   }
   const float* col = s + P_COL;
   if (SOFT) {
-    const bool head = px.cnt < sc.kmax;
     const float p = -e.q;
     Coef<float> cf;
     cf.aT = a * px.T;
@@ -135,10 +139,12 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
       for (int x = tx0; x < std::min(tx0 + kTileSize, sc.W); ++x) {
         Pixel px;
         int32_t lead[2] = {-1, -1};
+        int32_t lend = 0;
         std::fill(C.begin(), C.end(), 0.f);
         pairs[w] += walk_pixel<GEF>(sc, lst, n, x, y, coefs, intr, window, win, [&](const Entry& e) {
           step<SOFT>(sc, px, C.data(), sc.pk + size_t(lst[e.pos]) * sc.S, e);
           if (px.done) return false;
+          lend = std::max(lend, int32_t(e.pos + 1));
           if (taken) taken->push_back(e.pos);
           if (o.lead && e.a >= o.lead_alpha && lead[1] < 0) lead[lead[0] < 0 ? 0 : 1] = lst[e.pos];
           return true;
@@ -148,6 +154,7 @@ int64_t pixel_tiles(const Scene& sc, const FwdOut& o, const float* coefs, const 
           o.lead[2 * pix] = lead[0];
           o.lead[2 * pix + 1] = lead[1];
         }
+        if (o.lend) o.lend[pix] = lend;
         for (int c = 0; c < sc.nch; ++c) o.rgb[pix * sc.nch + c] = C[c] + (sc.bg ? px.T * sc.bg[c] : 0.f);
         o.alpha[pix] = px.A;
         o.depth[pix] = px.A > 0.f ? C[sc.nch] / px.A : 0.f;
@@ -218,7 +225,7 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrde
           const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], f);
           const Absorb<float> ab = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]);
           const float a = ab.a, p = -q.q, d = s[P_D];
-          const bool head = SOFT && P.cnt < sc.kmax, soft = head && P.A > 0.f;
+          const bool head = SOFT && in_head(sc, P, pos), soft = head && P.A > 0.f;
           SoftFwd<float> sf;
           float aT = a * P.T, r = 1.f, wk = 1.f;   // a head step at A = 0 has wk = 1 (step<true>)
           if (soft) {

@@ -179,13 +179,17 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
       reach[v] = mand(reach[v], mnot(done[v]));
       const VF a = ab[v].a;
       const VF T0 = T[v] * (VF(1.f) - a);
+      // the softmax head: the lane's first k_max composited splats, or (patch scope) the tile's
+      // first k_max list entries (lst[i] is the tile-list position; exact as a float below 2^24,
+      // where k_max is capped)
+      const VM in_head = (sc.patch ? VF(float(lst[i])) : cnt[v]) < kmaxf;
       // 3DGS: not composited, the pixel is done. Only where the step is vanilla: inside the softmax
       // head a later splat can take the pixel from those before it (constants.T_MIN).
       VM stop = mand(reach[v], T0 < VF(sc.tstop));
-      if (SOFT) stop = mand(stop, mnot(cnt[v] < kmaxf));
+      if (SOFT) stop = mand(stop, mnot(in_head));
       done[v] = mor(done[v], stop);
       const VM rv = mand(reach[v], mnot(stop));
-      const VM head = need_head ? mand(rv, cnt[v] < kmaxf) : rv;
+      const VM head = need_head ? mand(rv, in_head) : rv;
       if (SOFT) {
         const VM soft = mand(head, A[v] > VF(0.f));
         const VF p = -k[v].q;
@@ -251,6 +255,9 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
       if (L[v].idx[l] >= 0) {
         o.last[L[v].idx[l]] = int32_t(tls[l]);
         o.cnt[L[v].idx[l]] = int32_t(tc[l]);
+        // `last` counts block-list positions; the tile-list position of the last composited splat
+        // is the furthest (the lists are in depth order)
+        if (o.lend) o.lend[L[v].idx[l]] = tls[l] > 0.f ? lst[int(tls[l]) - 1] + 1 : 0;
       }
   }
   return pairs;
@@ -332,8 +339,9 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
   const VF kmaxf(float(sc.kmax));
   const size_t esz = size_t(4 + nc);  // vectors per entry and block vector
 
-  // Phase 1: recompute each lane's head (its first k_max composited splats) front to back, saving
-  // the state before every head step (softmax modes) and taking the regulariser's gradients.
+  // Phase 1: recompute each lane's head (its first k_max composited splats, or in patch scope its
+  // composited splats among the tile's first k_max list entries) front to back, saving the state
+  // before every head step (softmax modes) and taking the regulariser's gradients.
   int ne = 0;
   if ((SOFT || R) && sc.kmax > 0) {
     VF T1[NV], A1[NV], dp1[NV], pp1[NV], cnt1[NV], dfront[NV];
@@ -347,7 +355,7 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
       VM hv[NV];
       unsigned anyh = 0;
       for (int v = 0; v < NV; ++v) {
-        hv[v] = mand(VF(float(i)) < last[v], cnt1[v] < kmaxf);
+        hv[v] = mand(VF(float(i)) < last[v], (sc.patch ? VF(float(lst[i])) : cnt1[v]) < kmaxf);
         anyh |= bits(hv[v]);
       }
       if (!anyh) break;

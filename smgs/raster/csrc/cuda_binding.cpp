@@ -44,7 +44,7 @@ at::Tensor scratch(size_t bytes, const at::Device& dev) {
 
 Scene make_scene(const at::Tensor& pk, const at::Tensor& ranges, const at::Tensor& vals,
                  const at::Tensor& bg, int W, int H, int nch, int R, bool gef, bool soft, int64_t kmax,
-                 bool solved, double reg_scale) {
+                 bool solved, double reg_scale, bool patch) {
   Scene sc{};
   sc.pk = pk.data_ptr<float>();
   sc.S = P_COL + nch + R;
@@ -60,6 +60,7 @@ Scene make_scene(const at::Tensor& pk, const at::Tensor& ranges, const at::Tenso
   sc.soft = soft;
   sc.solved = solved;
   sc.kmax = int(std::min<int64_t>(kmax, INT32_MAX));
+  sc.patch = patch;
   sc.reg_scale = float(reg_scale);
   sc.bg = opt_ptr(bg);
   return sc;
@@ -72,7 +73,8 @@ std::vector<at::Tensor> forward_torch(at::Tensor means2d, at::Tensor conics, at:
                                    at::Tensor colors, at::Tensor depths, at::Tensor alpha,
                                    at::Tensor beta, at::Tensor gamma, at::Tensor background,
                                    at::Tensor reg_values, int64_t width, int64_t height, bool use_gef,
-                                   bool use_softmax, int64_t k_max, bool solved, double reg_scale) {
+                                   bool use_softmax, int64_t k_max, bool solved, double reg_scale,
+                                   bool patch) {
   check_f32(means2d, "means2d");
   check_f32(conics, "conics");
   check_f32(opacities, "opacities");
@@ -139,7 +141,8 @@ std::vector<at::Tensor> forward_torch(at::Tensor means2d, at::Tensor conics, at:
                 Tf = at::empty({H, W}, f32), reg = at::empty({H, W, R ? 1 + 2 * R : 0}, f32),
                 last = at::empty({H, W}, i32), cnt = at::empty({H, W}, i32), pairs = at::zeros({1}, i64),
                 chan = at::empty({int64_t(fwd_chan_floats(nch, W, H))}, f32);
-  Scene sc = make_scene(pk, ranges, svals, background, W, H, nch, R, use_gef, use_softmax, k_max, solved, reg_scale);
+  Scene sc = make_scene(pk, ranges, svals, background, W, H, nch, R, use_gef, use_softmax, k_max, solved, reg_scale,
+                        patch);
   FwdOut o{rgb.data_ptr<float>(),
            a.data_ptr<float>(),
            dep.data_ptr<float>(),
@@ -163,7 +166,7 @@ std::vector<at::Tensor> backward_torch(at::Tensor g_rgb, at::Tensor g_alpha, at:
                                     at::Tensor pk, at::Tensor ranges, at::Tensor tile_list,
                                     at::Tensor background, int64_t n, int64_t n_channels, int64_t n_reg,
                                     int64_t width, int64_t height, bool use_gef, bool use_softmax, int64_t k_max,
-                                    bool solved, double reg_scale, int64_t head_budget_bytes) {
+                                    bool solved, double reg_scale, int64_t head_budget_bytes, bool patch) {
   check_f32(g_rgb, "grad rgb");
   check_f32(g_alpha, "grad alpha");
   check_f32(g_depth, "grad depth");
@@ -174,9 +177,10 @@ std::vector<at::Tensor> backward_torch(at::Tensor g_rgb, at::Tensor g_alpha, at:
   const int W = int(width), H = int(height), nch = int(n_channels), R = int(n_reg);
   auto f32 = at::TensorOptions().dtype(at::kFloat).device(dev);
   Scene sc = make_scene(pk, ranges, tile_list, background, W, H, nch, R, use_gef, use_softmax, k_max, solved,
-                        reg_scale);
+                        reg_scale, patch);
   at::Tensor grad = at::zeros({n, sc.S}, f32);
-  // the head scratch needs only as many entries as the most crowded pixel composited (synchronises)
+  // the head scratch needs only as many entries as the most crowded pixel composited (synchronises;
+  // in patch scope a pixel's head steps are at most min(k_max, its count) too)
   const int64_t most = n_contrib.numel() ? n_contrib.max().item<int64_t>() : 0;
   const int kmax_eff = use_softmax ? int(std::min<int64_t>(std::max<int64_t>(k_max, 0), most)) : 0;
   const int64_t tiles = int64_t(sc.tiles_x) * sc.tiles_y;
@@ -221,12 +225,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("conics"), py::arg("opacities"), py::arg("colors"), py::arg("depths"), py::arg("alpha"),
         py::arg("beta"), py::arg("gamma"), py::arg("background"), py::arg("reg_values"), py::arg("width"),
         py::arg("height"), py::arg("use_gef"), py::arg("use_softmax"), py::arg("k_max"), py::arg("solved"),
-        py::arg("reg_scale"));
+        py::arg("reg_scale"), py::arg("patch") = false);
   m.def("backward", &smgs::cuda::backward_torch, "smgs CUDA splat compositing, backward", py::arg("g_rgb"),
         py::arg("g_alpha"), py::arg("g_depth"), py::arg("g_reg"), py::arg("alpha_out"), py::arg("depth_out"),
         py::arg("T_final"), py::arg("last"), py::arg("n_contrib"), py::arg("pk"), py::arg("ranges"),
         py::arg("tile_list"), py::arg("background"), py::arg("n"), py::arg("n_channels"), py::arg("n_reg"),
         py::arg("width"), py::arg("height"), py::arg("use_gef"), py::arg("use_softmax"), py::arg("k_max"),
-        py::arg("solved"), py::arg("reg_scale"), py::arg("head_budget_bytes"));
+        py::arg("solved"), py::arg("reg_scale"), py::arg("head_budget_bytes"), py::arg("patch") = false);
   m.def("constants", &smgs::cuda::compiled_constants, "numeric conventions as compiled");
 }

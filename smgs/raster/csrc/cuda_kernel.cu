@@ -14,7 +14,8 @@
 // sorted keys writes each tile's [start, end).
 //
 // Backward: per pixel, back to front over the composited splats. Tail steps (after the pixel's
-// first k_max composited splats, and every step of a mode without softmax) rebuild the state the
+// softmax head -- its first k_max composited splats, or in patch scope the tile's first k_max list
+// entries -- and every step of a mode without softmax) rebuild the state the
 // 3DGS way, T_before = T_after / (1 - a). The softmax head is first recomputed front to back and the
 // state before each head step (T, A, d_past, p_past, C) saved into per-thread scratch in global
 // memory, k_max_eff entries per thread, for one chunk of tiles at a time (so the scratch is
@@ -233,15 +234,18 @@ __global__ void __launch_bounds__(kBlock) fwd_kernel(Scene sc, FwdOut o, int B) 
       if (!(ab.a >= kAlphaMin)) continue;
       const float a = ab.a;
       const float T0 = T * (1.f - a);
+      // the softmax head: the pixel's first k_max composited splats, or (patch scope) the tile's
+      // first k_max list entries
+      const bool in_head = (sc.patch ? b0 + jj : cnt) < sc.kmax;
       // 3DGS: not composited, the pixel is done. Only where the step is vanilla: inside the softmax
       // head a later splat can take the pixel from those before it (constants.T_MIN).
-      if (T0 < kTStop && !(SOFT && cnt < sc.kmax)) {
+      if (T0 < kTStop && !(SOFT && in_head)) {
         done = true;
         break;
       }
       const float d = s[P_D];
       const float* col = s + P_COL;
-      const bool head = need_head ? cnt < sc.kmax : true;
+      const bool head = need_head ? in_head : true;
       if (SOFT) {
         const bool soft = head && A > 0.f;
         const float p = -k.q;
@@ -337,8 +341,10 @@ __global__ void __launch_bounds__(kBlock) bwd_kernel(Scene sc, BwdIn in, BwdWork
   if (maxlast == 0) return;  // block-uniform
   const int kmax = sc.kmax;
 
-  // Phase 1: recompute the pixel's head (its first k_max composited splats) front to back, saving
-  // the state before every head step (softmax modes) and taking the regulariser's gradients.
+  // Phase 1: recompute the pixel's head (its first k_max composited splats, or in patch scope its
+  // composited splats among the tile's first k_max list entries) front to back, saving the state
+  // before every head step (softmax modes) and taking the regulariser's gradients. Either way the
+  // head steps come first in the pixel's order, so entry cnt1 is the head step of ordinal cnt1.
   if ((SOFT || R) && kmax > 0) {
     float T1 = 1.f, A1 = 0.f, dp1 = 0.f, pp1 = 0.f, dfront = 0.f;
     int cnt1 = 0;
@@ -346,12 +352,12 @@ __global__ void __launch_bounds__(kBlock) bwd_kernel(Scene sc, BwdIn in, BwdWork
       for (int c = 0; c < nc; ++c) C1[c] = 0.f;
     const float* gR = R && P.inside ? in.g_reg + P.pix * (1 + 2 * R) + 1 : nullptr;  // dL/d Σw·v, Σw·v²
     for (int b0 = 0; b0 < maxlast; b0 += B) {
-      if (__syncthreads_count(b0 < mylast && cnt1 < kmax) == 0) break;
+      if (__syncthreads_count(b0 < mylast && (sc.patch ? b0 : cnt1) < kmax) == 0) break;
       const int nb = min(B, maxlast - b0);
       load_rows(rows, sc, P.start, b0, nb);
       __syncthreads();
       for (int jj = 0; jj < nb; ++jj) {
-        const bool hv = b0 + jj < mylast && cnt1 < kmax;
+        const bool hv = b0 + jj < mylast && (sc.patch ? b0 + jj : cnt1) < kmax;
         if (!__any_sync(kFull, hv)) break;  // warp-uniform
         const float* s = rows + jj * S;
         bool rv = false;
@@ -428,7 +434,7 @@ __global__ void __launch_bounds__(kBlock) bwd_kernel(Scene sc, BwdIn in, BwdWork
           const float* col = s + P_COL;
           // state before the step: the 3DGS inverse for tail steps, the saved state for head steps
           float Tpre = T / (1.f - a), Apre = 0.f, dpre = 0.f, ppre = 0.f;
-          const bool hm = SOFT && ord >= 0 && ord < w.kmax_eff;
+          const bool hm = SOFT && ord >= 0 && (sc.patch ? i < kmax : ord < w.kmax_eff);
           if (hm) {
             Tpre = hd(ord, 0);
             Apre = hd(ord, 1);

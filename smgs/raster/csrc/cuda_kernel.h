@@ -55,6 +55,9 @@ struct Scene {
   int W, H, tiles_x, tiles_y;
   bool gef, soft, solved;
   int kmax;
+  // k_max scope (docs/kmax-scope.md): false = a pixel's first k_max composited splats form its
+  // softmax head; true = the tile-list entries at positions < k_max, the same for every pixel of a tile
+  bool patch;
   float reg_scale;
   const float* bg;  // [nch] or null
 };
