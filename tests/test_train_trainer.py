@@ -50,3 +50,22 @@ def test_stage_timings_only_when_profiling_and_the_step_is_the_same():
     assert set(timed.timings) == {"render", "loss", "backward", "optim", "strategy"}
     assert all(v > 0 for v in timed.timings.values()), timed.timings
     torch.testing.assert_close(quiet.gaussians.means, timed.gaussians.means, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("scope", ["pixel", "patch"])
+def test_the_k_max_scope_reaches_the_renderer(monkeypatch, scope):
+    """TrainConfig.k_max_scope (docs/kmax-scope.md) is what every render of the trainer uses."""
+    import smgs.train.trainer as trainer_mod
+
+    seen = []
+    real = trainer_mod.rasterize
+
+    def spy(*a, **kw):
+        seen.append((kw.get("k_max"), kw.get("k_max_scope")))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(trainer_mod, "rasterize", spy)
+    tr = _trainer("softmax_gs", k_max=7, k_max_scope=scope)
+    tr.train_step(0)
+    tr.render(tr.scene.test[0].camera if tr.scene.test else tr.scene.train[0].camera)
+    assert seen and set(seen) == {(7, scope)}
