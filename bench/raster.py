@@ -20,7 +20,7 @@ docs/kmax-scope.md); "within k_max" is then the pixels whose splats all lie in t
 k_max entries. To compare two source trees of the renderer, see ``bench/ab.py``.
 
 Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
-scenes made by the same recipe at other sizes. The reference backend is dense (every splat at every
+scenes made by the same recipe at other sizes (``rand_1m_1600x1000``, 1M splats, only by name). The reference backend is dense (every splat at every
 pixel), so it only runs on scenes of at most ``--reference-max-pairs`` splat-pixel pairs.
 """
 
@@ -53,6 +53,8 @@ FILE_SCENES = {"10k_256": "scene_10k_256.npz", "100k_512": "scene_100k_512.npz"}
 # name -> (N, width, height, seed)
 RANDOM_SCENES = {"rand_1k_64": (1_000, 64, 64, 1), "rand_3k_128": (3_000, 128, 128, 2),
                  "rand_40k_1024x576": (40_000, 1024, 576, 3)}
+# by name only (not in the default list): the GPU-sized scene of ../shared/GPU.md and issue 32
+LARGE_SCENES = {"rand_1m_1600x1000": (1_000_000, 1600, 1000, 4)}
 
 
 def random_scene(n: int, width: int, height: int, seed: int) -> dict[str, np.ndarray]:
@@ -78,7 +80,9 @@ def load_scene(name: str) -> dict[str, np.ndarray]:
         path = SHARED / FILE_SCENES[name]
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
-    return random_scene(*RANDOM_SCENES[name])
+    if name not in RANDOM_SCENES and name not in LARGE_SCENES:
+        raise SystemExit(f"unknown scene {name!r}; known: {', '.join([*FILE_SCENES, *RANDOM_SCENES, *LARGE_SCENES])}")
+    return random_scene(*{**RANDOM_SCENES, **LARGE_SCENES}[name])
 
 
 def to_inputs(sc: dict[str, np.ndarray], seed: int = 0) -> tuple[dict[str, torch.Tensor], Camera]:
