@@ -13,12 +13,14 @@ from pathlib import Path
 from typing import Any
 
 from smgs.env import versions
+from protocols.cell_lock import cell_lock
+from protocols.live_cells import live_cell
 from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config_hash, read_result, write_result
 
 LOG = "log.txt"
 # Keys of a cell's config that do not change its result (where and how it runs).
 VOLATILE = ("force", "executor", "report", "out_dir", "data_root", "on_missing", "grid",
-            "experiment_name", "checkpoint_every", "export_ply")
+            "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 def result_hash(cfg: dict) -> str:
@@ -82,11 +84,26 @@ def run_cell(payload: dict) -> dict:
         return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
     h = result_hash(cfg)
     base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
-    log = None
     try:
         if _finished(run_dir / RESULTS_FILE, h, bool(cfg.get("force", False))):
             return {"key": payload["key"], "status": "ok", "skipped": True}
         run_dir.mkdir(parents=True, exist_ok=True)
+        with cell_lock(run_dir, str(cfg.get("out_dir", "?")), str(cfg.get("on_busy", "skip"))) as holder:
+            if holder is not None:   # another live process writes this cell: it is left to it
+                return {"key": payload["key"], "status": "skipped", "busy": True,
+                        "error": f"held by {holder.describe()}, which is writing this cell; left to it "
+                                 "(rerun later to pick up its result, or on_busy=wait to wait for it)"}
+            return _run_locked(payload["key"], cfg, run_dir, h, base)
+    except Exception as e:  # the folder or its lock is the problem: recorded where it can be
+        return _failed(payload["key"], run_dir, base, e, None)
+
+
+def _run_locked(key: str, cfg: dict, run_dir: Path, h: str, base: RunResult) -> dict:
+    """The cell's run, with its folder's lock held (``protocols.cell_lock``)."""
+    log = None
+    try:
+        if _finished(run_dir / RESULTS_FILE, h, bool(cfg.get("force", False))):
+            return {"key": key, "status": "ok", "skipped": True}   # finished by the lock's last holder
         log = _logger(run_dir)
         if cfg.get("force", False):
             from protocols.train_loop import discard_checkpoints
@@ -94,7 +111,8 @@ def run_cell(payload: dict) -> dict:
             discard_checkpoints(run_dir)  # --force retrains: nothing of an earlier run is resumed
         atomic_write_text(run_dir / "config.yaml", _yaml(cfg))
         from protocols.train_loop import train_and_evaluate
-        result = train_and_evaluate(cfg, run_dir, base, log)
+        with live_cell(run_dir):
+            result = train_and_evaluate(cfg, run_dir, base, log)
         if result.config_hash != h:  # a result is only ever recorded under its own config
             raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
     except KeyboardInterrupt:
@@ -102,9 +120,9 @@ def run_cell(payload: dict) -> dict:
             log.info("interrupted; rerun to resume from the last checkpoint")
         raise
     except Exception as e:  # recorded; the sweep goes on
-        return _failed(payload["key"], run_dir, base, e, log)
+        return _failed(key, run_dir, base, e, log)
     write_result(run_dir, result)
-    return {"key": payload["key"], "status": "ok", "psnr": result.metrics.get("psnr")}
+    return {"key": key, "status": "ok", "psnr": result.metrics.get("psnr")}
 
 
 def _device_label(device: str) -> str:

@@ -1,38 +1,30 @@
-"""The conditions of a cell's FPS measurement: parallel cells of one sweep take turns (a file lock
-in the sweep's folder), and the result records the threads used and how many cells ran at once,
-so a report can say that the other cells may have been training meanwhile."""
+"""The conditions of a cell's FPS measurement: the cells running on this machine take turns (a file
+lock beside the live-cell registry, ``protocols.live_cells``, so cells of different sweeps take
+turns too), and the result records the threads used and how many cells were running, this one
+included, so a report can say that other cells may have been training meanwhile."""
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
-from pathlib import Path
 from typing import Iterator
 
 import torch
 
-LOCK = ".fps.lock"
+from protocols.live_cells import count_live_cells, registry
 
-
-def cells_in_parallel(cfg: dict) -> int:
-    ex = cfg.get("executor") or {}
-    return max(1, int(ex.get("workers", 1))) if ex.get("kind") == "local" else 1
+LOCK = "fps.lock"
 
 
 @contextlib.contextmanager
-def fps_slot(cfg: dict) -> Iterator[dict]:
-    """Hold the sweep's FPS lock (only when cells run in parallel) while measuring; yields the
-    conditions to record in the result's diagnostics."""
-    parallel = cells_in_parallel(cfg)
-    conditions = {"threads": torch.get_num_threads(), "cells_in_parallel": parallel}
-    if parallel == 1:
-        yield conditions
-        return
-    path = Path(cfg["out_dir"]) / LOCK
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as f:
+def fps_slot() -> Iterator[dict]:
+    """Hold this machine's FPS lock while measuring; yields the conditions to record in the
+    result's diagnostics (``cells_in_parallel``: the most cells seen running, before and after)."""
+    with open(registry() / LOCK, "a") as f:
         fcntl.flock(f, fcntl.LOCK_EX)  # released when the file closes, also if the process dies
         try:
+            conditions = {"threads": torch.get_num_threads(), "cells_in_parallel": count_live_cells()}
             yield conditions
+            conditions["cells_in_parallel"] = max(conditions["cells_in_parallel"], count_live_cells())
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)

@@ -133,7 +133,8 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
                         slurm=OmegaConf.to_container(ex.slurm, resolve=True), folder=str(ex.slurm.folder))
     counts: dict[str, int] = {}
     for s in summaries:
-        k = "skipped (finished before)" if s.get("skipped") else s["status"]
+        k = "skipped (finished before)" if s.get("skipped") else \
+            "skipped (another process is writing it)" if s.get("busy") else s["status"]
         counts[k] = counts.get(k, 0) + 1
         if s["status"] != "ok":
             print(f"  {s['key']}: {s['status']}: {s.get('error')}", flush=True)

@@ -20,6 +20,7 @@ from protocols.cell_scene import load_scene_for
 from protocols.sections import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
+from protocols.live_cells import NeighbourLog
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
 from protocols.run_settings import run_settings
@@ -147,14 +148,16 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     # method's training time; its seconds are recorded apart.
     result.build_seconds = _prepare_kernels(method, log)
     clock = TrainClock(device)
+    neighbours = NeighbourLog()   # the cells (of any sweep) that shared this machine while it trained
     with track_peak_memory(device) as peak:
-        result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log)
+        result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log,
+                             neighbours)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
 
     within = final_metrics(method, scene, test_rgb, ev, run_dir, device, result)
-    with fps_slot(cfg) as fps_conditions:
+    with fps_slot() as fps_conditions:
         fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
                                  warmup=ev.fps_warmup, repeats=ev.fps_repeats, device=device)
     result.render_fps = fps.fps
@@ -165,6 +168,8 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.versions = versions(resolve_backend(cfg.get("backend", "auto"), device, torch.float32), device_name(device))
     result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
     result.diagnostics = diagnostics(method, desc, plan, within, ev, clock, peak.kind, fps_conditions)
+    result.diagnostics["train_conditions"] = {"threads": torch.get_num_threads(),
+                                              "cells_in_parallel": neighbours.most}
     if peak.baseline_bytes:   # resident at the training block's entry: peak minus this is the run's own
         result.diagnostics["peak_memory_baseline_mb"] = peak.baseline_bytes / 2**20
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
@@ -189,10 +194,12 @@ def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
 
 
 def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
-          cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger) -> list[CurvePoint]:
+          cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger,
+          neighbours: NeighbourLog | None = None) -> list[CurvePoint]:
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps (the error-against-time curve, returned) and a
-    checkpoint every ``checkpoint_every`` steps, both outside the train clock."""
+    checkpoint every ``checkpoint_every`` steps, both outside the train clock. ``neighbours``
+    counts the cells running on this machine every 10 steps."""
     progress = _load_checkpoint(run_dir, method, config_hash, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     start = int(progress["step"])
@@ -220,6 +227,8 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
                                                    "config_hash": config_hash})
         bar.update(1)
         if done % 10 == 0 or done == steps:
+            if neighbours is not None:
+                neighbours.sample()
             # psnr: this step's training view; test: the last intermediate evaluation
             post = {"loss": f"{logs.get('loss', float('nan')):.4f}"}
             if "psnr" in logs:

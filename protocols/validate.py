@@ -59,6 +59,10 @@ def config_problems(cfg: dict) -> list[str]:
     popping = _get(cfg, "eval.popping_ratio")
     if popping is not None and popping not in POPPING_RATIO:
         problems.append(f"eval.popping_ratio={popping!r}: must be one of {', '.join(POPPING_RATIO)}")
+    from protocols.cell_lock import ON_BUSY
+
+    if cfg.get("on_busy", "skip") not in ON_BUSY:
+        problems.append(f"on_busy={cfg.get('on_busy')!r}: must be one of {', '.join(ON_BUSY)}")
     backend = cfg.get("backend", "auto")
     from smgs.raster.api import BACKEND_NAMES
 

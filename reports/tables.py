@@ -100,13 +100,15 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
         notes.append("Rows marked (pretrained) are models trained elsewhere, read from a PLY and only evaluated "
                      "here under the same protocol (no train time of ours): " + "; ".join(pre[:5])
                      + (f"; … {len(pre) - 5} more" if len(pre) > 5 else "") + ".")
-    shared = [(r.diagnostics or {}).get("fps_conditions") or {} for r in runs if r.status == "ok"]
-    shared = [c for c in shared if c.get("cells_in_parallel", 1) > 1]
-    if shared:
-        notes.append(f"FPS of {len(shared)} run(s) was measured while up to "
-                     f"{max(c['cells_in_parallel'] for c in shared) - 1} other cell(s) of the sweep could be "
-                     f"training beside it (executor.kind=local; one cell measured at a time, with "
-                     f"{'/'.join(sorted({str(c.get('threads')) for c in shared}))} thread(s)).")
+    for key, what_ran in (("fps_conditions", "FPS"), ("train_conditions", "Train time")):
+        shared = [(r.diagnostics or {}).get(key) or {} for r in runs if r.status == "ok"]
+        shared = [c for c in shared if c.get("cells_in_parallel", 1) > 1]
+        if shared:
+            turns = " (the cells measure FPS one at a time)" if key == "fps_conditions" else ""
+            notes.append(f"{what_ran} of {len(shared)} run(s) was measured while up to "
+                         f"{max(c['cells_in_parallel'] for c in shared) - 1} other cell(s), of this or another "
+                         f"sweep, were running on the same machine{turns}, with "
+                         f"{'/'.join(sorted({str(c.get('threads')) for c in shared}))} thread(s) each.")
     q = {bool(r.diagnostics.get("metrics_on_8bit")) for r in runs
          if r.status == "ok" and "metrics_on_8bit" in (r.diagnostics or {})}
     if q == {False}:

@@ -31,6 +31,15 @@ def cpu_backend():
     return cpu
 
 
+@pytest.fixture(autouse=True)
+def _own_live_cell_registry(tmp_path_factory, monkeypatch):
+    """Each test counts only the cells it runs itself (``protocols.live_cells``), not those of other
+    test sessions or sweeps on the same machine."""
+    from protocols.live_cells import ENV
+
+    monkeypatch.setenv(ENV, str(tmp_path_factory.mktemp("live_cells")))
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _no_lpips_download():
     """No test fetches LPIPS weights on first use (``SMGS_LPIPS_AUTO=0``, inherited by the runs the
