@@ -207,7 +207,14 @@ def test_cuda_t_min_variant_matches_reference(mode):
 
     oc, gc = run(lambda *a, **kw: rasterize_splats(*a, backend="cuda", **kw), DEV)   # through api.py
     orf, gr = run(rasterize_splats_reference, "cpu")
-    assert 0.9 < orf.alpha.max() <= 0.95 + 1e-5   # pixels stopped at T >= t_min = 0.05
+    # The stop holds where it applies: every vanilla step keeps T >= t_min = 0.05 (alpha <= 0.95). In
+    # the softmax modes no step inside a pixel's first k_max splats stops the ray (a later splat can
+    # still win it), so T may fall below t_min there (alpha up to 0.992 here); a pixel that
+    # composited more than k_max splats took its later steps only while T stayed above t_min.
+    stopped = orf.stats.n_contrib > (4 if mode != "3dgs" else -1)
+    assert 0.9 < orf.alpha[stopped].max() <= 0.95 + 1e-5
+    if mode != "3dgs":
+        assert orf.alpha.max() > 0.95 + 1e-5      # the head does not stop: the variant's bound is per step kind
     torch.testing.assert_close(oc.alpha.cpu(), orf.alpha, rtol=0, atol=2 * OUT_ATOL32)
     torch.testing.assert_close(oc.rgb.cpu(), orf.rgb, rtol=0, atol=2 * OUT_ATOL32)
     assert torch.equal(oc.stats.n_contrib.cpu(), orf.stats.n_contrib)

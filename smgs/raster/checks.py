@@ -63,8 +63,11 @@ def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, 
     # One sum per tensor in its own dtype: NaN/inf propagate into it. A finite sum that overflows
     # only sends us to the exact per-element count below, which refuses nothing finite. (Summing in
     # float64 converted every element: 31 ms for 100k splats with SH degree 3, more than the render.)
-    sums = torch.stack([t.sum().to(torch.float64) for _, t in present])
-    if bool(torch.isfinite(sums).all()):
+    # One stack per device: the camera's tensors may stay on the CPU while the splats are on a GPU.
+    by_device: dict[torch.device, list[torch.Tensor]] = {}
+    for _, t in present:
+        by_device.setdefault(t.device, []).append(t.sum().to(torch.float64))
+    if all(bool(torch.isfinite(torch.stack(sums)).all()) for sums in by_device.values()):
         return
     for name, t in present:
         bad = torch.isnan(t) | (t == -torch.inf) if name in pos_inf_ok else ~torch.isfinite(t)
