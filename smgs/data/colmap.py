@@ -19,11 +19,12 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.data.images import (ResolutionRule, check_aspect, describe_resampling, find_image, image_size,
-                              parallel_map, read_image, resize_image, resolve_auto_folder, scale_intrinsics)
+from smgs.data.images import (ResolutionRule, check_aspect, check_scene_scale, describe_resampling, find_image,
+                              image_size, parallel_map, read_image, resize_image, resolve_auto_folder,
+                              scale_intrinsics)
 from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
-                             camera_extent, split_description, split_every)
+                             camera_extent, check_split, split_description, split_every)
 
 LAYOUT = ("<scene>/images/<name as in the model>, optional <scene>/images_N/, and a COLMAP model "
           "<scene>/sparse/0/{cameras,images,points3D}.{bin,txt} (or <scene>/sparse/)")
@@ -199,12 +200,14 @@ def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRul
         return img, scale_intrinsics(im.K, (im.width, im.height), out), src
 
     loaded = parallel_map(load_one, range(len(model.images)), workers)
+    check_scene_scale([(p, src, (im.width, im.height)) for p, (_, _, src), im in zip(paths, loaded, model.images)])
     views = []
     for im, (img, K, _) in zip(model.images, loaded):
         cam = Camera(torch.from_numpy(K).float(), torch.from_numpy(im.viewmat).float(), img.shape[1], img.shape[0])
         views.append(View(cam, torch.from_numpy(np.ascontiguousarray(img)), im.name))
     names = [v.name for v in views]
     tr, te = split_every(names, test_every)
+    check_split(f"COLMAP model {mdir}", len(views), len(tr), split_description(test_every))
     train, test = [views[i] for i in tr], [views[i] for i in te]
 
     src0 = loaded[0][2]

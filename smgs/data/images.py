@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import statistics
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -148,6 +149,31 @@ def check_aspect(path: Path, img_size: tuple[int, int], cam_size: tuple[int, int
         raise SceneFormatError(
             f"image {path} is {w}x{h} but its camera is {cw}x{ch} (aspect {cw / ch:.4f} vs {w / h:.4f}); "
             "the image folder does not match the camera model (a rotated image, or images from another capture?)")
+
+
+def check_scene_scale(images: Sequence[tuple[Path, tuple[int, int], tuple[int, int]]], tol_px: float = 1.5) -> None:
+    """Every image at its camera's size divided by the scene's own factor: ``images`` is (file,
+    image (w, h), camera (w, h)) per view. The factor of each axis is the median camera/image ratio
+    (the lower median: an actual image's), so a shipped ``images_4`` folder passes with 4 and full
+    images with 1, each axis rounded on its own; an image off that scale by more than ``tol_px``
+    (a 1x1 file, a thumbnail, a truncated download of another size) is refused naming it.
+    ``check_aspect`` alone passes such an image, whose aspect is measured at its own size."""
+    if not images:
+        return
+    fx = statistics.median_low([cw / w for _, (w, _h), (cw, _ch) in images])
+    fy = statistics.median_low([ch / h for _, (_w, h), (_cw, ch) in images])
+    bad = [(p, (w, h), (cw, ch)) for p, (w, h), (cw, ch) in images
+           if abs(w - cw / fx) > tol_px or abs(h - ch / fy) > tol_px]
+    if bad:
+        ok = next((x for x in images if x not in bad), images[0])
+        factor = f"{fx:.4g}" if abs(fx / fy - 1) < 0.01 else f"{fx:.4g} across, {fy:.4g} down"
+        lines = [f"{p} is {w}x{h}, its camera {cw}x{ch}" for p, (w, h), (cw, ch) in bad[:5]]
+        more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
+        raise SceneFormatError(
+            f"{len(bad)} image(s) are not at the scene's scale (camera size / {factor}, as {ok[0]} is "
+            f"{ok[1][0]}x{ok[1][1]} for a {ok[2][0]}x{ok[2][1]} camera): " + "; ".join(lines) + more
+            + ". Each would be scored as a view of the whole image (a truncated download, a thumbnail, or an "
+            "image from another folder?); replace it with the image at the scene's scale")
 
 
 def images_n_folders(scene_dir: Path) -> list[tuple[int, Path]]:

@@ -102,6 +102,15 @@ def split_every(names: list[str], test_every: int | None = 8) -> tuple[list[int]
     return train, test
 
 
+def check_split(where: object, n_images: int, n_train: int, split: str) -> None:
+    """A scene must leave at least one image to train on: a scene of one image (with the every-8th
+    hold-out it is the test view) is refused naming the folder, before training pops from an
+    empty list of views."""
+    if n_train == 0:
+        raise SceneFormatError(f"{where}: {n_images} image(s) and none left to train on after the split "
+                               f"({split}); a scene needs at least 2 images (one to train on, one to test)")
+
+
 def split_description(test_every: int | None) -> str:
     if not test_every:
         return "no test split (all images train)"

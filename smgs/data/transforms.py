@@ -36,11 +36,11 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.data.images import (ResolutionRule, check_aspect, describe_resampling, image_size, parallel_map,
-                              read_image, resize_image, scale_intrinsics)
+from smgs.data.images import (ResolutionRule, check_aspect, check_scene_scale, describe_resampling, image_size,
+                              parallel_map, read_image, resize_image, scale_intrinsics)
 from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
-                             camera_extent, split_description, split_every)
+                             camera_extent, check_split, split_description, split_every)
 
 LAYOUT = ("<scene>/transforms.json (instant-ngp / nerfstudio) or <scene>/transforms_{train,test}.json "
           "(Blender), with frames[].file_path relative to the json file")
@@ -205,14 +205,14 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
     bg = np.asarray(background if background is not None else (1.0, 1.0, 1.0), dtype=np.float64)
     loader = _FrameLoader(base, images, rule, bg)
     loaded = parallel_map(lambda i: loader(entries[i]), range(len(entries)), workers)
+    check_scene_scale([(e.path, src, ksize) for e, (_, _, _, src, ksize) in zip(entries, loaded)])
     views = []
     for e, (img, K, vm, _, _) in zip(entries, loaded):
         c = Camera(torch.from_numpy(K).float(), torch.from_numpy(vm).float(), img.shape[1], img.shape[0])
         views.append(View(c, torch.from_numpy(img), _frame_name(e.frame["file_path"])))
     tr, te, split_desc = _split(files, root, entries, views, test_every)
     train, test = [views[i] for i in tr], [views[i] for i in te]
-    if not train:
-        raise SceneFormatError(f"{base}: no training frames after the split ({split_desc})")
+    check_split(base, len(views), len(train), split_desc)
 
     src0 = loaded[0][3]
     out0 = (views[0].camera.width, views[0].camera.height)
