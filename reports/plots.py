@@ -1,7 +1,8 @@
 """Error against run time, as PNG figures (matplotlib's Agg canvas; no pyplot, no global backend).
 
-- PSNR against train seconds: one curve per run from its intermediate evaluations, one panel per scene
-  (per pattern for the 2D fits).
+- PSNR against train seconds: one curve per method × budget × preset from the runs' intermediate
+  evaluations, one panel per scene (per pattern for the 2D fits); with two or more seeds the mean over
+  seeds and a band from the lowest to the highest seed (``seed_bands``).
 - PSNR against render FPS and PSNR against #Gaussians: one point per method × budget (× preset), one
   panel per dataset (per pattern), the Pareto front of each preset marked.
 """
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
 from protocols.results import RunResult
 from reports.paper import budget_rank, dataset_label, dataset_rank, method_label, method_rank, scene_rank
@@ -72,6 +74,43 @@ def _grid(n: int) -> tuple[int, int]:
 
 # ---- PSNR against train seconds ----------------------------------------------------------------
 
+@dataclass
+class Band:
+    """The seeds of one method × budget × preset on one panel, at the evaluation steps all of them
+    made: mean train seconds, mean / lowest / highest PSNR."""
+
+    method: str
+    budget: str
+    preset: str
+    seeds: list[int]
+    steps: list[int]
+    seconds: list[float]
+    mean: list[float]
+    low: list[float]
+    high: list[float]
+
+
+def seed_bands(runs: list[RunResult]) -> list[Band]:
+    """One Band per method × budget × preset of ``runs`` (one panel's) with two or more seeds whose
+    curves share at least one evaluation step."""
+    groups: dict[tuple[str, str, str], list[RunResult]] = {}
+    for r in runs:
+        groups.setdefault((r.method, _budget(r), r.preset), []).append(r)
+    bands = []
+    for (m, b, p), rs in groups.items():
+        if len(rs) < 2:
+            continue
+        by_step = [{c.step: c for c in r.curve} for r in rs]
+        steps = sorted(set.intersection(*(set(d) for d in by_step)))
+        if not steps:
+            continue
+        ys = [[d[s].psnr for d in by_step] for s in steps]
+        bands.append(Band(m, b, p, sorted(r.seed for r in rs), steps,
+                          [sum(d[s].seconds for d in by_step) / len(rs) for s in steps],
+                          [sum(y) / len(y) for y in ys], [min(y) for y in ys], [max(y) for y in ys]))
+    return bands
+
+
 def time_curves(runs: list[RunResult]) -> list[Plot]:
     panels: dict[str, list[RunResult]] = {}
     for r in sorted(runs, key=lambda r: (dataset_rank(r.dataset), scene_rank(r.dataset, r.scene))):
@@ -87,9 +126,11 @@ def time_curves(runs: list[RunResult]) -> list[Plot]:
             _curves_panel(fig.add_subplot(rows, cols, i + 1), name, panels[name])
         part = "" if start == 0 else f"_{start // PANELS_PER_FIGURE + 1}"
         plots.append(Plot(f"psnr_vs_time{part}.png",
-                          "Test-view PSNR against train seconds (evaluation excluded), one curve per run "
-                          "from its intermediate evaluations; colour = method, line style (or the label at "
-                          "the end of a curve) = budget, marker = preset.", _png(fig)))
+                          "Test-view PSNR against train seconds (evaluation excluded), from the runs' "
+                          "intermediate evaluations: with two or more seeds the mean over seeds (at the mean "
+                          "seconds) and a shaded band from the lowest to the highest seed, else the one run's "
+                          "curve; colour = method, line style (or the label at the end of a curve) = budget, "
+                          "marker = preset.", _png(fig)))
     return plots
 
 
@@ -99,16 +140,20 @@ def _curves_panel(ax, name: str, runs: list[RunResult]) -> None:
     styled = len(budgets) <= len(LINESTYLES)  # otherwise the budget is written at the end of each curve
     labelled = set()
     xs_all = []
-    for r in runs:
-        xs = [c.seconds for c in r.curve]
-        ys = [c.psnr for c in r.curve]
+    bands = {(b.method, b.budget, b.preset): b for b in seed_bands(runs)}
+    curves = [(b.method, b.budget, b.preset, b.seconds, b.mean, b) for b in bands.values()]
+    curves += [(r.method, _budget(r), r.preset, [c.seconds for c in r.curve], [c.psnr for c in r.curve], None)
+               for r in runs if (r.method, _budget(r), r.preset) not in bands]
+    for method, budget, preset, xs, ys, band in curves:
         xs_all += [x for x in xs if x > 0]
-        ls = LINESTYLES[budgets.index(_budget(r))] if styled else "-"
-        ax.plot(xs, ys, ls, color=color(r.method), marker=MARKERS.get(r.preset, "^"), markersize=3, linewidth=1,
+        ls = LINESTYLES[budgets.index(budget)] if styled else "-"
+        if band is not None:
+            ax.fill_between(xs, band.low, band.high, color=color(method), alpha=0.2, linewidth=0)
+        ax.plot(xs, ys, ls, color=color(method), marker=MARKERS.get(preset, "^"), markersize=3, linewidth=1,
                 alpha=0.8)
-        key = (r.method, _budget(r), r.preset)
+        key = (method, budget, preset)
         if not styled and key not in labelled:
-            ax.annotate(_budget(r), (xs[-1], ys[-1]), fontsize=5, xytext=(2, 0), textcoords="offset points")
+            ax.annotate(budget, (xs[-1], ys[-1]), fontsize=5, xytext=(2, 0), textcoords="offset points")
         labelled.add(key)
     handles = [Line2D([], [], color=color(m), label=method_label(m))
                for m in dict.fromkeys(r.method for r in runs)]
@@ -118,6 +163,9 @@ def _curves_panel(ax, name: str, runs: list[RunResult]) -> None:
     if presets != ["paper"]:
         handles += [Line2D([], [], color="k", linestyle="", marker=MARKERS.get(p, "^"), label=f"[{p}]")
                     for p in presets]
+    if bands:
+        n = sorted({len(b.seeds) for b in bands.values()})
+        handles.append(Patch(color="k", alpha=0.2, label=f"seeds min–max (n = {'/'.join(map(str, n))})"))
     if xs_all and max(xs_all) / min(xs_all) > 50:
         ax.set_xscale("log")
     ax.set_title(name, fontsize=9)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from protocols.results import RunResult, find_results, read_result
+from reports.stats import mean_sd
 
 PATTERN_DATASETS = ("patterns",)
 
@@ -34,10 +35,12 @@ class Value:
     """A mean over runs (or scenes), or the reason there is none."""
 
     mean: float | None
-    std: float | None = None
-    n: int = 0
+    std: float | None = None       # sd over seeds (or propagated over scenes: reports.stats.mean_of_means)
+    n: int = 0                     # seeds behind the mean
     reason: str | None = None
     notes: tuple[str, ...] = ()
+    seeds: tuple[tuple[int, float], ...] = ()   # (seed, value) behind the mean: paired differences
+    ci: tuple[float, float] | None = None       # a confidence interval of the mean (paired differences)
 
     @property
     def ok(self) -> bool:
@@ -231,22 +234,21 @@ def aggregate(runs: list[RunResult], get: Getter) -> Value:
     the value is absent with their reason(s)."""
     if not runs:
         return Value.absent("no result in the runs directory")
-    vals: list[float] = []
+    vals: list[tuple[int, float]] = []
     gone: list[tuple[int, str]] = []
     for r in sorted(runs, key=lambda r: r.seed):
         v = get(r)
         if isinstance(v, Absent):
             gone.append((r.seed, v.reason))
         else:
-            vals.append(v)
+            vals.append((r.seed, v))
     if not vals:
         return Value.absent(_join_reasons(gone))
-    mean = sum(vals) / len(vals)
-    std = math.sqrt(sum((x - mean) ** 2 for x in vals) / (len(vals) - 1)) if len(vals) > 1 else None
+    mean, std = mean_sd([x for _, x in vals])
     notes = ()
     if gone:
         notes = (f"{len(vals)} of {len(runs)} seeds; {_join_reasons(gone)}",)
-    return Value(mean, std, len(vals), None, notes)
+    return Value(mean, std, len(vals), None, notes, tuple(vals))
 
 
 def _join_reasons(gone: list[tuple[int, str]]) -> str:

@@ -2,12 +2,18 @@
 second in italics, every "—" with a footnote. Rendered to markdown and to long-format CSV rows.
 
 Comparison columns: ``diff`` prints ours − paper (PSNR, SSIM, LPIPS, MSE, FLIP, %); ``ratio``
-prints ours / paper as ×r (counts, minutes, FPS: quantities compared by scale).
+prints ours / paper as ×r (counts, minutes, FPS: quantities compared by scale); ``paper`` prints the
+paper's value beside ours and no difference (paired differences: ours and the paper's are both A − B).
+
+A table of seed means (``seeds=True``) prints ± sd where a value has two or more seeds, notes n (and
+footnotes a value with another n), or says that one seed gives no spread; best / second are only
+marked where the lead is larger than the spread, and a lead inside it is a tie (docs/reports.md).
 """
 
 from __future__ import annotations
 
 import html
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
@@ -15,6 +21,11 @@ from reports.runs import Value
 
 SUPERSCRIPT = str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")
 DASH = "—"
+TIE = "tie"            # rank of values that share the best place within their seeds' spread
+RESOLVED = "✱"         # after an interval that excludes 0
+Rank = Literal[1, 2, "tie"]
+ONE_SEED_NOTE = ("One seed per value: no spread available (more seeds: grid.seeds=[0,1,2] or seeds=3; "
+                 "docs/reports.md).")
 
 
 # ---- number formats ---------------------------------------------------------------------------
@@ -57,11 +68,22 @@ class Column:
     label: str
     fmt: Callable[[float], str]
     better: Literal["higher", "lower"] | None = None
-    compare: Literal["diff", "ratio"] | None = None
+    compare: Literal["diff", "ratio", "paper"] | None = None
     decimals: int = 2          # of the Δ column
     show_std: bool = False
     group: str = ""            # row-wise ranking: columns of the same group compete
     delta_fmt: Callable[[float], str] | None = None
+
+    def value_text(self, v: Value, std: bool) -> str:
+        """The cell text of a value: mean, "± sd" (when shown and there is one), "[low, high]✱" (an
+        interval, marked when it excludes 0)."""
+        text = self.fmt(v.mean)
+        if std and v.std is not None:
+            text += f" ± {self.fmt(v.std)}"
+        if v.ci is not None:
+            lo, hi = v.ci
+            text += f" [{self.fmt(lo)}, {self.fmt(hi)}]" + (RESOLVED if lo > 0 or hi < 0 else "")
+        return text
 
     def delta_text(self, ours: float, paper: float) -> str:
         if self.compare == "ratio":
@@ -93,12 +115,17 @@ class Table:
     info_columns: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     rank: Literal["column", "row", "none"] = "column"
+    seeds: bool = False        # values are means over seeds: ± sd, n, the spread-aware ranking's note
 
     # -- ranking ----------------------------------------------------------------------------
-    def ranks(self) -> dict[tuple[int, str], int]:
-        """(row index, column key) -> 1 (best) or 2 (second), among competing cells with a value.
-        Ties (equal as printed) share a rank. A set with a single value, or whose values all tie, is
-        not ranked."""
+    def ranks(self) -> dict[tuple[int, str], Rank]:
+        """(row index, column key) -> 1 (best), 2 (second) or "tie", among competing cells with a value.
+
+        Without a spread (no value of the set has an sd: one seed) values equal as printed share a
+        rank; a set with a single value, or whose values all tie, is not ranked. With a spread, a value
+        ties the best when it is equal as printed or behind by no more than the larger sd of the two:
+        a lone best is rank 1, several are each "tie" (and nobody is second); the runner-up is rank 2
+        only when it leads the next value by more than their spread (or is the last)."""
         sets: list[tuple[list[tuple[int, str]], Column]] = []
         if self.rank == "column":
             for c in self.columns:
@@ -116,36 +143,61 @@ class Table:
                         by_group.setdefault(c.group, []).append(c)
                 for cols in by_group.values():
                     sets.append(([(i, c.key) for c in cols], cols[0]))
-        out: dict[tuple[int, str], int] = {}
+        out: dict[tuple[int, str], Rank] = {}
         for cells, col in sets:
-            scored = []   # (mean, text as printed, cell)
+            scored = []   # (mean, text as printed, sd, cell)
             for i, k in cells:
                 v = self.rows[i].values.get(k)
                 if v is not None and v.ok:
-                    scored.append((v.mean, col.fmt(v.mean), (i, k)))
+                    scored.append((v.mean, col.fmt(v.mean), v.std, (i, k)))
             if len(scored) < 2:
                 continue
             best_first = sorted(scored, key=lambda s: s[0], reverse=(col.better == "higher"))
-            texts = list(dict.fromkeys(t for _, t, _ in best_first))  # equal as printed = tie
+            if any(sd is not None for *_, sd, _ in scored):
+                out.update(_spread_ranks(best_first))
+                continue
+            texts = list(dict.fromkeys(t for _, t, _, _ in best_first))  # equal as printed = tie
             if len(texts) < 2:
                 continue  # all equal: nothing stands out
-            for _, t, cell in scored:
+            for _, t, _, cell in scored:
                 if texts.index(t) < 2:
                     out[cell] = texts.index(t) + 1
         return out
+
+    # -- seeds ------------------------------------------------------------------------------
+    def seed_count(self) -> int:
+        """The most common number of seeds behind this table's values (0: no value)."""
+        ns = Counter(v.n for r in self.rows for c in self.columns for v in [r.values.get(c.key)]
+                     if v is not None and v.ok)
+        return ns.most_common(1)[0][0] if ns else 0
+
+    def spread_note(self) -> str | None:
+        """What ± means here and the seeds behind it, or that one seed gives no spread (seed tables)."""
+        if not self.seeds:
+            return None
+        n = self.seed_count()
+        if n == 0:
+            return None
+        if max(v.n for r in self.rows for v in r.values.values() if v.ok) < 2:
+            return ONE_SEED_NOTE
+        return (f"± is the standard deviation over seeds (n = {n} per value unless a footnote says otherwise); "
+                "best / second are marked only where the lead is larger than that spread, a lead inside it is "
+                "a tie.")
 
     # -- cells (shared by markdown and HTML) -------------------------------------------------
     def grid(self) -> "Grid":
         """Header, cells and footnotes as every renderer shows them."""
         notes = Footnotes()
         ranks = self.ranks()
+        n_mode = self.seed_count() if self.seeds else 0
+        spread = self.seeds and any(v.n >= 2 for r in self.rows for v in r.values.values() if v.ok)
         header = list(self.key_columns)
         numeric = [False] * len(header)
         for c in self.columns:
             header.append(c.label)
             if c.compare:
-                header += ["paper", "×paper" if c.compare == "ratio" else "Δ"]
-            numeric += [True] * (3 if c.compare else 1)
+                header += ["paper"] + ([] if c.compare == "paper" else ["×paper" if c.compare == "ratio" else "Δ"])
+            numeric += [True] * (1 + (c.compare is not None) + (c.compare in ("diff", "ratio")))
         header += self.info_columns
         numeric += [False] * len(self.info_columns)
         rows = []
@@ -155,10 +207,15 @@ class Table:
                 cells[-1].marks = [notes.mark(n) for n in row.label_notes]
             for c in self.columns:
                 v = row.values.get(c.key, Value.absent("no result in the runs directory"))
-                cells.append(_value_cell(v, c, ranks.get((i, c.key)), notes))
+                cell = _value_cell(v, c, ranks.get((i, c.key)), notes, c.show_std or self.seeds)
+                if spread and v.ok and v.n != n_mode and not any(n.startswith(f"{v.n} of ") for n in v.notes):
+                    cell.marks.append(notes.mark(f"{v.n} seed{'s' if v.n != 1 else ''}"))
+                cells.append(cell)
                 if c.compare:
                     p = row.paper.get(c.key, Value.absent("not in the paper"))
-                    cells.append(_value_cell(p, Column(c.key, "", c.fmt), None, notes))
+                    cells.append(_value_cell(p, Column(c.key, "", c.fmt), None, notes, False))
+                    if c.compare == "paper":
+                        continue
                     if c.key in row.no_compare:
                         cells.append(Cell("n/c", marks=[notes.mark(row.no_compare[c.key])]))
                     elif v.ok and p.ok:
@@ -168,7 +225,11 @@ class Table:
                         cells.append(Cell(""))
             cells += [Cell(row.info.get(k, "")) for k in self.info_columns]
             rows.append(cells)
-        return Grid(header, numeric, rows, notes.texts)
+        remarks = list(self.notes)
+        note = self.spread_note()
+        if note:
+            remarks.insert(0, note)
+        return Grid(header, numeric, rows, notes.texts, remarks)
 
     # -- markdown ---------------------------------------------------------------------------
     def markdown(self) -> str:
@@ -184,10 +245,10 @@ class Table:
             out.append("")
         out += lines
         foot = [f"{superscript(i + 1)} {md_text(t)}  " for i, t in enumerate(g.notes)]
-        if foot or self.notes:
+        if foot or g.remarks:
             out.append("")
         out += foot
-        out += [f"- {md_text(n)}" for n in self.notes]
+        out += [f"- {md_text(n)}" for n in g.remarks]
         return "\n".join(out)
 
     # -- CSV --------------------------------------------------------------------------------
@@ -201,12 +262,18 @@ class Table:
             for c in self.columns:
                 v = row.values.get(c.key, Value.absent("no result in the runs directory"))
                 rec[c.key] = v.mean if v.ok else None
-                if c.show_std:
+                if c.show_std or self.seeds or v.ci is not None:
                     rec[f"{c.key}_std"] = v.std
                 rec[f"{c.key}_n"] = v.n if v.ok else 0
+                if v.ci is not None:
+                    rec[f"{c.key}_ci_low"], rec[f"{c.key}_ci_high"] = v.ci
+                    rec[f"{c.key}_excludes_0"] = int(v.ci[0] > 0 or v.ci[1] < 0)
+                if c.compare == "paper" and v.seeds:  # paired differences: each seed's, to check by hand
+                    rec[f"{c.key}_per_seed"] = ";".join(f"{seed}:{x:.6g}" for seed, x in v.seeds)
                 if c.compare:
                     p = row.paper.get(c.key, Value.absent("not in the paper"))
                     rec[f"paper_{c.key}"] = p.mean if p.ok else None
+                if c.compare in ("diff", "ratio"):
                     comparable = v.ok and p.ok and c.key not in row.no_compare and (c.compare != "ratio" or p.mean)
                     name = f"ratio_{c.key}" if c.compare == "ratio" else f"delta_{c.key}"
                     rec[name] = (v.mean / p.mean if c.compare == "ratio" else v.mean - p.mean) if comparable else None
@@ -227,7 +294,7 @@ class Cell:
     number it sorts by (None: sort by text)."""
 
     text: str
-    rank: int | None = None
+    rank: Rank | None = None
     marks: list[str] = field(default_factory=list)
     sort: float | None = None
 
@@ -237,6 +304,8 @@ class Cell:
             text = f"**{text}**"
         elif self.rank == 2:
             text = f"*{text}*"
+        elif self.rank == TIE:
+            text += " (tie)"
         return text + "".join(self.marks)
 
 
@@ -246,19 +315,34 @@ class Grid:
     numeric: list[bool]        # per column: numbers (right-aligned)
     rows: list[list[Cell]]
     notes: list[str]           # footnote texts, numbered from 1
+    remarks: list[str] = field(default_factory=list)   # the table's notes below its footnotes
 
 
 def superscript(n: int) -> str:
     return str(n).translate(SUPERSCRIPT)
 
 
-def _value_cell(v: Value, c: Column, rank: int | None, notes: "Footnotes") -> Cell:
+def _value_cell(v: Value, c: Column, rank: Rank | None, notes: "Footnotes", std: bool) -> Cell:
     if not v.ok:
         return Cell(DASH, marks=[notes.mark(v.reason or "no value")])
-    text = c.fmt(v.mean)
-    if c.show_std and v.std is not None:
-        text += f" ± {c.fmt(v.std)}"
-    return Cell(text, rank, [notes.mark(n) for n in v.notes], v.mean)
+    return Cell(c.value_text(v, std), rank, [notes.mark(n) for n in v.notes], v.mean)
+
+
+def _spread_ranks(best_first: list[tuple]) -> dict[tuple[int, str], Rank]:
+    """Table.ranks for a set with a spread: ``best_first`` holds (mean, text as printed, sd, cell)."""
+    def ties(a: tuple, b: tuple) -> bool:
+        sds = [x[2] for x in (a, b) if x[2] is not None]
+        return a[1] == b[1] or abs(a[0] - b[0]) <= max(sds, default=0.0)
+
+    top = best_first[0]
+    best = [x for x in best_first if ties(top, x)]
+    if len(best) > 1:
+        return {x[3]: TIE for x in best}
+    out: dict[tuple[int, str], Rank] = {top[3]: 1}
+    rest = best_first[1:]
+    if len(rest) == 1 or not ties(rest[0], rest[1]):
+        out[rest[0][3]] = 2
+    return out
 
 
 def md_text(text: object) -> str:

@@ -6,8 +6,8 @@ footnote and ranked only against rows of the same preset (and, for speed, the sa
 
 from __future__ import annotations
 
-from collections import Counter, defaultdict
-from dataclasses import dataclass, replace
+from collections import defaultdict
+from dataclasses import dataclass
 from typing import Iterable
 
 from protocols.results import RunResult
@@ -17,6 +17,8 @@ from reports.paper import (DATASET_SCENES, PATTERNS, GROUP_LABELS, GROUP_ORDER, 
                            row_label, scene_rank)
 from reports.runs import (Value, aggregate, consistency_getter, field_getter, flow_estimator, is_pattern,
                           metric, one_line, pattern_cap, preset_description)
+from reports.paired import table1_paired, table2_paired, table4_paired, table5_paired
+from reports.stats import mean_of_means
 from reports.table_model import Column, Row, Section, Table, count, fixed
 
 RowKey = tuple[str, str, str]  # (method, budget, preset)
@@ -130,11 +132,6 @@ def _csv_id(key: RowKey, **extra) -> dict[str, object]:
     return {**extra, "method": method, "budget": budget, "preset": preset, "label": row_label(method, budget)}
 
 
-def _modal_n(values: list[Value]) -> int:
-    ns = Counter(v.n for v in values if v.ok)
-    return ns.most_common(1)[0][0] if ns else 0
-
-
 # ---- Table 1 ----------------------------------------------------------------------------------
 
 def table1(runs: list[RunResult], ctx: Context) -> Section:
@@ -174,15 +171,8 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
                 row.values[f"{m}@{p}"] = v
                 row.paper[f"{m}@{p}"] = ctx.paper_value(ctx.paper.t1(pattern, m, cap), "Table 1")
             rows.append(row)
-        n = _modal_n([v for row in rows for v in row.values.values()])
-        for row in rows:  # a cell with another seed count than the table's says so
-            for k, v in row.values.items():
-                if v.ok and v.n != n and not v.notes:
-                    row.values[k] = replace(v, notes=(f"{v.n} seed{'s' if v.n != 1 else ''}",))
-        notes = [f"± is the standard deviation over seeds; n = {n} seed{'s' if n != 1 else ''} per cell unless "
-                 "a footnote says otherwise."] if n else []
-        notes += [ctx.presets[p] for p in sorted({p for _, p in cols_keys}) if p in ctx.presets]
-        sec.blocks.append(Table(f"{pattern}", ["#GS cap"], columns, rows, notes=notes, rank="row"))
+        notes = [ctx.presets[p] for p in sorted({p for _, p in cols_keys}) if p in ctx.presets]
+        sec.blocks.append(Table(f"{pattern}", ["#GS cap"], columns, rows, notes=notes, rank="row", seeds=True))
         for (pt, cap, m, p), rs in sorted(cells.items()):
             if pt != pattern:
                 continue
@@ -196,11 +186,24 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
                                                                         + list(v.notes))})
     sec.records = records
     sec.subsections.append(_table1_ordering(cells, ctx))
+    _add(sec, table1_paired(_table1_rows(cells, ctx), [Column("psnr", "PSNR↑", fixed(2), "higher")]))
     sec.notes += mix_notes(pats)
     if no_cap:
         sec.notes.append(f"{len(no_cap)} pattern run(s) record no Gaussian cap and are left out: "
                          + ", ".join(f"{r.scene}/{r.method}/{r.budget}/seed{r.seed}" for r in no_cap[:10]))
     return sec
+
+
+def _table1_rows(cells: dict[tuple, list[RunResult]], ctx: Context) -> list[Row]:
+    """One row per pattern × cap × method × preset (for the paired differences)."""
+    return [Row([], {"psnr": aggregate(rs, PSNR)}, {"psnr": ctx.paper_value(ctx.paper.t1(pt, m, cap), "Table 1")},
+                csv={"pattern": pt, "cap": cap, "method": m, "budget": f"cap{cap}", "preset": p})
+            for (pt, cap, m, p), rs in sorted(cells.items())]
+
+
+def _add(sec: Section, sub: Section | None) -> None:
+    if sub is not None:
+        sec.subsections.append(sub)
 
 
 def _table1_ordering(cells: dict[tuple, list[RunResult]], ctx: Context) -> Section:
@@ -282,11 +285,22 @@ def dataset_means(dataset: str, real: list[RunResult], getters: dict) -> Dataset
 
 
 def _scene_mean(values: list[Value], scenes: list[str]) -> Value:
+    """The mean over scenes of the scenes' seed means. Its sd is what one seed's mean over these scenes
+    would spread by (reports.stats.mean_of_means), its n the fewest seeds of a scene, and its per-seed
+    values the seeds every scene ran (for paired differences)."""
     bad = [(s, v.reason) for s, v in zip(scenes, values) if not v.ok]
     if bad:
         return Value.absent(_scene_reasons(dict(bad)))
     notes = tuple(dict.fromkeys(f"{s}: {n}" for s, v in zip(scenes, values) for n in v.notes))
-    return Value(sum(v.mean for v in values) / len(values), None, len(values), None, notes)
+    mean, sd = mean_of_means([(v.mean, v.std) for v in values])
+    ns = sorted({v.n for v in values})
+    if len(ns) > 1:
+        notes += (f"seeds per scene: {', '.join(f'{s} {v.n}' for s, v in zip(scenes, values))}; n is the fewest"
+                  + ("; no sd: a scene has one seed" if sd is None else ""),)
+    per_seed = [dict(v.seeds) for v in values]
+    common = sorted(set.intersection(*(set(d) for d in per_seed))) if per_seed else []
+    seeds = tuple((s, sum(d[s] for d in per_seed) / len(per_seed)) for s in common)
+    return Value(mean, sd, ns[0], None, notes, seeds)
 
 
 def _scene_reasons(reasons: dict[str, str | None]) -> str:
@@ -308,6 +322,7 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
                      "scenes than the dataset has is footnoted. Groups as in the paper: extreme sparse (5%), "
                      "sparse (mini, light), dense (full, and MCMC at a cap: mcmc_<cap>). Best of a group in bold, "
                      "second in italics.")
+    all_rows = []
     for ds in sorted({r.dataset for r in real}, key=dataset_rank):
         dm = dataset_means(ds, real, T2_GETTERS)
         rows = []
@@ -336,12 +351,14 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
                          f"{', '.join(dm.extra_scenes)} (see Table 5).")
         notes += mix_notes(dm.runs, "This block")
         sec.blocks.append(Table(f"{dataset_label(ds)} ({ds})", ["Group", "Method"], list(T2_COLUMNS), rows,
-                                notes=notes))
+                                notes=notes, seeds=True))
+        all_rows += rows
     ran = {(r.method, r.budget) for r in real}
     if not ctx.paper.error:
         others = [k for k in ctx.paper.table2_rows if not any(k == paper_key(m, b) for m, b in ran)]
         if others:
             sec.notes.append(not_run_note(others, {r.method for r in real}))
+    _add(sec, table2_paired(all_rows, T2_COLUMNS[:3], ctx.paper))
     return sec
 
 
@@ -410,7 +427,8 @@ def table3(runs: list[RunResult], ctx: Context) -> Section:
     notes = ["The paper's times are on its own GPU (not stated) at 30K steps; a ratio across devices "
              "measures the hardware as much as the method."]
     notes += mix_notes(real)
-    sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Device", "Steps"], notes))
+    sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Device", "Steps"], notes,
+                            seeds=True))
     return sec
 
 
@@ -449,7 +467,8 @@ def table4(runs: list[RunResult], ctx: Context) -> Section:
         notes.append("Scored on each method's own valid mask (StopThePop scores the compared methods on the "
                      "intersection of their masks), so a difference between rows includes their masks.")
     notes += mix_notes(real)
-    sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Flow"], notes))
+    sec.blocks.append(Table("", ["Scene", "Method"], cols, [r for _, r, _ in rows], ["Flow"], notes, seeds=True))
+    _add(sec, table4_paired([r for _, r, _ in rows], cols[:3]))
     return sec
 
 
@@ -479,7 +498,8 @@ def table5(runs: list[RunResult], ctx: Context) -> Section:
         block = [r for d, r, _ in rows if d == ds]
         dsr = [r for r in real if r.dataset == ds]
         sec.blocks.append(Table(f"{dataset_label(ds)} ({ds})", ["Scene", "Method"], cols, block,
-                                notes=mix_notes(dsr, "This block")))
+                                notes=mix_notes(dsr, "This block"), seeds=True))
+    _add(sec, table5_paired([r for _, r, _ in rows], cols[:1], ctx.paper))
     return sec
 
 

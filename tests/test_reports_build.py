@@ -89,7 +89,7 @@ def test_table1_pattern_grid(report):
     assert "18.10 ± 0.14" in line and "*18.10" not in line  # third: plain
     assert "1 seed" in footnote(md, line, 4)  # gef_only ran one seed: footnoted
     # softmax_gs caps are given as config["cap"] with budget "cap": they land in their own rows
-    line16 = row(md, "| 16 |")
+    line16 = row(md, "| 16 |", "32.51")
     assert "**32.10 ± 0.14**" in line16 and "32.51" in line16
     assert "—" in line16 and "no result" in footnote(md, line16, 4)  # gef_only cap 16 never ran
     assert "Metrics on float renders, not 8-bit" in md  # the runner's flag for the fits

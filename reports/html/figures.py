@@ -16,7 +16,7 @@ from pathlib import Path
 from reports.diagnostics import PARAM_LABELS, param_names, param_groups, param_summary
 from reports.html.escape import plotly_text as pt
 from reports.paper import budget_rank, dataset_rank, method_label, method_rank, scene_rank
-from reports.plots import Point, color, pareto_front, panel_name
+from reports.plots import Band, Point, color, pareto_front, panel_name, seed_bands
 from reports.runs import Run, is_pattern, pattern_cap
 from reports.tables import row_order
 from reports.tradeoff import tradeoff_points
@@ -75,7 +75,7 @@ def time_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
         rs.sort(key=lambda x: (method_rank(x.r.method), budget_rank(budget_of(x)), x.r.seed))
         budgets = list(dict.fromkeys(sorted((budget_of(x) for x in rs), key=budget_rank)))
         seen: set = set()
-        data = []
+        data = [_band_trace(b) for b in seed_bands([x.r for x in rs])]  # under the curves
         for run in rs:
             r = run.r
             xs = [c.seconds for c in r.curve]
@@ -99,9 +99,23 @@ def time_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
         xs_all = [x for d in data for x in d["x"] if x and x > 0]
         log_x = bool(xs_all) and max(xs_all) / min(xs_all) > 50
         figs.append(Figure(f"fig-time-{k}", panel, "Test-view PSNR against train seconds (evaluation excluded), "
-                           "one curve per run; colour = method, dash = budget, marker = preset.", data,
+                           "one curve per run; colour = method, dash = budget, marker = preset; shaded: the band "
+                           "from the lowest to the highest seed of a method × budget × preset with two or more "
+                           "seeds (at their mean seconds).", data,
                            _layout(panel, "train seconds", "PSNR (dB)", log_x)))
     return figs
+
+
+def _band_trace(b: Band) -> dict:
+    """The seeds' min–max band as a filled polygon (hover: which seeds)."""
+    h = color(b.method).lstrip("#")
+    rgb = ", ".join(str(int(h[i:i + 2], 16)) for i in (0, 2, 4))
+    seeds = ", ".join(map(str, b.seeds))
+    return {"type": "scatter", "mode": "lines", "x": b.seconds + b.seconds[::-1], "y": b.high + b.low[::-1],
+            "fill": "toself", "fillcolor": f"rgba({rgb}, 0.18)", "line": {"width": 0},
+            "legendgroup": pt(b.method), "showlegend": False, "hoveron": "fills",
+            "name": pt(f"{method_label(b.method)} {b.budget}: seeds {seeds}, min–max"),
+            "hoverinfo": "name"}
 
 
 # ---- Pareto plots -------------------------------------------------------------------------------
@@ -153,7 +167,8 @@ def _pareto_figure(fid: str, panel: str, pts: list[Point], behind: dict, runs_di
                      "customdata": custom,
                      "hovertemplate": "run(s) %{customdata[0]}<br>method %{customdata[1]} · budget %{customdata[2]} · "
                                       "seed(s) %{customdata[3]} · preset %{customdata[4]}<br>" + pt(xlabel)
-                                      + " %{x:.4g}, PSNR %{y:.2f} dB (mean over %{customdata[5]})<extra></extra>"})
+                                      + " %{x:.4g}, PSNR %{y:.2f} dB (mean over %{customdata[5]} seed(s))"
+                                      "<extra></extra>"})
     for i, preset in enumerate(sorted({p.preset for p in pts})):
         sub = [p for p in pts if p.preset == preset]
         front = sorted((sub[j] for j in pareto_front([(p.x.mean, p.psnr.mean) for p in sub], higher)),

@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Callable, Iterable, Sequence
 
 from reports.html.escape import esc
-from reports.table_model import Cell, Section, Table
+from reports.table_model import TIE, Cell, Section, Table
 
 
 def table_html(table: Table, table_id: str) -> str:
@@ -25,10 +25,10 @@ def table_html(table: Table, table_id: str) -> str:
             tds.append(_cell(c, tag, "num" if g.numeric[i] else "txt", table_id))
         body.append("<tr>" + "".join(tds) + "</tr>")
     out.append(plain_table(head, body, table_id))
-    if g.notes or table.notes:
+    if g.notes or g.remarks:
         out.append('<ol class="notes">' + "".join(
             f'<li id="{table_id}-n{i + 1}" value="{i + 1}">{esc(t)}</li>' for i, t in enumerate(g.notes)) + "</ol>")
-        out += [f'<p class="note">{esc(n)}</p>' for n in table.notes]
+        out += [f'<p class="note">{esc(n)}</p>' for n in g.remarks]
     return "\n".join(out)
 
 
@@ -43,6 +43,8 @@ def _cell(c: Cell, tag: str, kind: str, table_id: str) -> str:
         text = f"<strong>{text}</strong>"
     elif c.rank == 2:
         text = f"<em>{text}</em>"
+    elif c.rank == TIE:
+        text += " (tie)"
     marks = "".join(f'<sup><a href="#{table_id}-n{_number(m)}">{esc(m)}</a></sup>' for m in c.marks)
     sort = f' data-sort="{c.sort!r}"' if c.sort is not None else ""
     scope = ' scope="row"' if tag == "th" else ""
