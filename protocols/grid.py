@@ -27,10 +27,12 @@ class Cell:
 
 
 def expand(methods: list[str], datasets: dict[str, list[str]], budgets: list[str],
-           seeds: list[int], scenes: list[str] | None = None) -> list[Cell]:
+           seeds: list[int], scenes: list[str] | None = None,
+           seeds_of: dict[str, list[int]] | None = None) -> list[Cell]:
     """Cells in a stable order: dataset, scene, budget, method, seed (so a partial sweep has every
     method of a scene before the next scene). ``datasets`` maps a dataset name to its scenes;
-    ``scenes`` restricts them (a name no dataset has is an error)."""
+    ``scenes`` restricts them (a name no dataset has is an error); ``seeds_of`` gives the methods it
+    names their own seeds instead of ``seeds``."""
     if scenes is not None:
         known = {s for ss in datasets.values() for s in ss}
         unknown = [s for s in scenes if s not in known]
@@ -44,7 +46,7 @@ def expand(methods: list[str], datasets: dict[str, list[str]], budgets: list[str
                 continue
             for b in budgets:
                 for m in methods:
-                    for s in seeds:
+                    for s in (seeds_of or {}).get(m, seeds):
                         cells.append(Cell(m, ds, sc, b, int(s)))
     if len(set(cells)) != len(cells):
         raise ValueError("the grid lists a method, dataset, budget or seed twice")

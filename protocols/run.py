@@ -24,7 +24,7 @@ log = logging.getLogger("smgs.protocols")
 
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
-GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "scene=", "method.name=")
+GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "seeds=", "scene=", "method.name=")
 
 
 def _method_overrides(method: str) -> list[str]:
@@ -67,15 +67,30 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
     for m in grid.methods:
         get_spec(str(m))  # an unknown method stops here, naming the registered ones
     datasets = {str(d): _scenes_of(str(d), overrides) for d in grid.datasets}
-    cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets],
-                   [int(s) for s in grid.seeds],
-                   None if grid.scenes is None else [str(s) for s in grid.scenes])
+    seeds, seeds_of = grid_seeds(cfg)
+    cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds,
+                   None if grid.scenes is None else [str(s) for s in grid.scenes], seeds_of)
     out = Path(cfg.out_dir)
     payloads = []
     for c in cells:
         ccfg = _cell_config(c, overrides)
         payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg})
     return cells, payloads
+
+
+def grid_seeds(cfg: DictConfig) -> tuple[list[int], dict[str, list[int]]]:
+    """The grid's seeds and per-method exceptions: ``seeds=N`` runs seeds 0 … N−1 of every method;
+    otherwise ``grid.seeds``, with ``grid.seeds_of`` (method -> seeds) for the methods it names
+    (docs/reports.md, "Running N seeds")."""
+    n = cfg.get("seeds")
+    if n is not None:
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"seeds={n!r}: give the number of seeds, a whole number ≥ 1 (seeds=3 runs seeds 0, 1, "
+                             "2; for a list of seed numbers use grid.seeds=[...])")
+        return list(range(n)), {}
+    seeds_of = cfg.grid.get("seeds_of") or {}
+    return ([int(s) for s in cfg.grid.seeds],
+            {str(m): [int(s) for s in v] for m, v in OmegaConf.to_container(seeds_of).items()} if seeds_of else {})
 
 
 def _preflight(payloads: list[dict]) -> None:

@@ -235,7 +235,7 @@ def test_a_protocol_cell_trains_evaluates_and_resumes_on_the_run_device(tmp_path
     from protocols.cell_scene import load_scene_for
     from protocols.run import CONFIG_DIR, plan
 
-    ov = ["+experiment=smoke", "grid.methods=[softmax_gs]", "protocol.steps=6", "report=false",
+    ov = ["+experiment=smoke", "seeds=1", "grid.methods=[softmax_gs]", "protocol.steps=6", "report=false",
           "eval.fps_repeats=1", "device=cpu", f"out_dir={tmp_path}", "checkpoint_every=3", "dataset.n_views=4",
           "dataset.width=24", "dataset.height=16", "eval.consistency=true", "eval.consistency_max_width=16"]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):

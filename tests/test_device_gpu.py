@@ -21,7 +21,7 @@ CPU = torch.device("cpu")
 
 
 def test_smoke_200_steps_of_every_method_on_cuda(tmp_path):
-    s = run_experiment(["+experiment=smoke", "protocol.steps=200", "device=cuda", "report=true",
+    s = run_experiment(["+experiment=smoke", "seeds=1", "protocol.steps=200", "device=cuda", "report=true",
                         f"out_dir={tmp_path}"])
     assert sorted(x["status"] for x in s) == ["ok"] * 4, s
     for m in METHODS:

@@ -12,7 +12,7 @@ from protocols.results import read_result
 from protocols.run import run_experiment
 
 SCENE = ["dataset.width=32", "dataset.height=24", "dataset.n_views=8", "eval.fps_repeats=1", "eval.flip=false"]
-TINY = ["+experiment=smoke", "protocol.steps=4", "eval.fractions=[1.0]", "report=false",
+TINY = ["+experiment=smoke", "seeds=1", "protocol.steps=4", "eval.fractions=[1.0]", "report=false",
         "grid.methods=[3dgs,softmax_gs]", *SCENE]
 
 

@@ -143,7 +143,7 @@ def test_impossible_settings_stop_the_sweep_before_any_cell_runs(tmp_path, overr
 
 def test_protocol_steps_are_checked_too(tmp_path):
     with pytest.raises(SystemExit, match=r"protocol\.steps.*at least 1"):
-        run_experiment(["+experiment=smoke", f"out_dir={tmp_path}", "report=false", "protocol.steps=0"])
+        run_experiment(["+experiment=smoke", "seeds=1", f"out_dir={tmp_path}", "report=false", "protocol.steps=0"])
 
 
 def test_sigterm_ends_the_run_cleanly_and_the_log_holds_plain_lines(tmp_path):

@@ -120,7 +120,7 @@ def test_config_typo_is_a_clear_error_on_the_command_line():
 
 
 def test_consistency_row_and_trajectory_recorded(tmp_path):
-    s = run_experiment(["+experiment=smoke", f"out_dir={tmp_path}", "report=false", "grid.methods=[softmax_gs]",
+    s = run_experiment(["+experiment=smoke", "seeds=1", f"out_dir={tmp_path}", "report=false", "grid.methods=[softmax_gs]",
                         "protocol.steps=5", "dataset.width=96", "dataset.height=72", "dataset.n_views=10",
                         "eval.consistency=true", "eval.fps_repeats=1", "eval.flip=false"])
     assert s[0]["status"] == "ok"
@@ -149,11 +149,37 @@ def test_smoke_experiment_end_to_end_with_report(tmp_path):
     """The README's main command, with fewer steps and smaller images (the full one takes minutes)."""
     s = run_experiment(["+experiment=smoke", f"out_dir={tmp_path}", "protocol.steps=8", "dataset.width=64",
                         "dataset.height=48", "dataset.n_views=10", "eval.fps_repeats=1"])
-    assert [x["status"] for x in s] == ["ok"] * 4
+    # the compared pair at seeds 0, 1, 2 (grid.seeds_of), the two ablations at seed 0
+    assert sorted(x["key"].split("/", 2)[2] for x in s) == sorted(
+        [f"{m}/full/seed{i}" for m in ("3dgs", "softmax_gs") for i in range(3)]
+        + ["gef_only/full/seed0", "softmax_only/full/seed0"])
+    assert [x["status"] for x in s] == ["ok"] * 8
     report = (tmp_path / "report" / "report.md").read_text()
     for name in ("3D GS", "Sharp edge only", "Softmax only", "Softmax-GS", "[cpu]"):
         assert name in report
-    assert (tmp_path / "report" / "tables" / "table5_per_scene.csv").exists()
+    assert "n = 3 per value" in report and "Softmax-GS − 3D GS [cpu]" in report  # spread, paired difference
+    assert (tmp_path / "report" / "tables" / "table5_paired.csv").exists()
+
+
+def test_seeds_n_and_per_method_seeds():
+    from hydra import compose, initialize_config_dir
+
+    from protocols.run import CONFIG_DIR, plan
+
+    def keys(*ov: str) -> list[str]:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cells, payloads = plan(compose(config_name="config", overrides=list(ov)), list(ov))
+        assert all(p["config"]["seeds"] is None for p in payloads)  # not part of a cell's identity
+        return [c.key.split("/", 2)[2] for c in cells]
+
+    smoke = keys("+experiment=smoke", "grid.methods=[3dgs,gef_only]")
+    assert smoke == ["3dgs/full/seed0", "3dgs/full/seed1", "3dgs/full/seed2", "gef_only/full/seed0"]
+    assert keys("+experiment=smoke", "grid.methods=[3dgs,gef_only]", "seeds=2") == [
+        "3dgs/full/seed0", "3dgs/full/seed1", "gef_only/full/seed0", "gef_only/full/seed1"]
+    assert keys("grid.seeds=[4,7]") == ["softmax_gs/full/seed4", "softmax_gs/full/seed7"]
+    for bad in ("seeds=0", "seeds=[0,1]"):
+        with pytest.raises(ValueError, match="whole number"):
+            keys(bad)
 
 
 def test_the_popping_ratio_is_left_out_with_why_where_its_maps_are_not_made():
