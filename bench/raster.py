@@ -139,7 +139,9 @@ def ratio_to(ts: dict[str, list[float]], key: str, base: str) -> float:
 
 
 def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False, scope="pixel"):
-    """(forward, forward+backward) closures of one mode, each returning the render output."""
+    """(forward, forward+backward) closures of one mode, each returning the render output.
+    ``backend`` "cuda:v2" is the cuda backend through the opt-in kernels (docs/cuda.md)."""
+    backend, _, kernels = backend.partition(":")
     dev = torch.device("cuda" if backend == "cuda" else "cpu")
     params = {k: v.to(dev) for k, v in params.items()}
     leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
@@ -151,6 +153,8 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False, 
         extra["leaders"] = True
     if scope != "pixel":
         extra["k_max_scope"] = scope
+    if kernels:
+        extra["cuda_kernels"] = kernels
 
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,
@@ -224,7 +228,9 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["10k_256", "100k_512", *RANDOM_SCENES])
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
-    ap.add_argument("--backends", nargs="+", default=["cpu", "cuda", "reference"])
+    ap.add_argument("--backends", nargs="+", default=["cpu", "cuda", "reference"],
+                    help="cpu, cuda, reference, or cuda:v2 (the cuda backend through the opt-in kernels, "
+                         "docs/cuda.md)")
     ap.add_argument("--sorts", nargs="+", default=["global"], choices=["global", "per_pixel"])
     ap.add_argument("--leaders", action="store_true",
                     help="also each mode with the leading-splat map (rasterize(leaders=True), Table 4's Pop7)")
@@ -250,7 +256,8 @@ def main(argv=None) -> None:
         pf, pfb = projection_ms(params, cam, args.repeats, args.warmup)
         notes.append(f"{name}: projection alone {pf:.1f} ms forward, {pfb:.1f} ms forward+backward")
         for backend in args.backends:
-            if not backend_available(backend, "cuda" if backend == "cuda" else "cpu", torch.float32):
+            base = backend.partition(":")[0]
+            if not backend_available(base, "cuda" if base == "cuda" else "cpu", torch.float32):
                 notes.append(f"{name}: backend {backend} unavailable here")
                 continue
             if backend == "reference" and n * cam.width * cam.height > args.reference_max_pairs:
@@ -259,9 +266,9 @@ def main(argv=None) -> None:
             labels = [(m if s == "global" else f"{m}/{s}") + ("" if sc == "pixel" else f"@{sc}")
                       for sc in args.scopes for s in args.sorts for m in args.modes
                       if sc == "pixel" or mode_flags(m)[1]]   # the scope changes softmax modes only
-            if backend == "cuda":
+            if base == "cuda":
                 labels = [m for m in labels if "/" not in m]   # no per-pixel order on cuda
-            if args.leaders and backend != "cuda":   # (cuda composites them on host copies)
+            if args.leaders and base != "cuda":   # (cuda composites them on host copies)
                 labels += [f"{m}+leaders" for m in labels]
             res = bench_modes(params, cam, labels, backend, args.k_max, reps, args.warmup)
             for mode, r in res.items():

@@ -10,6 +10,7 @@ import torch
 from smgs.camera import Camera
 from smgs.raster import checks
 from smgs.raster import constants as K
+from smgs.raster.cuda_v2 import kernel_choice
 from smgs.raster.projection import project_gaussians
 from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import eval_sh
@@ -162,6 +163,7 @@ def rasterize_splats(
     ray_depth: RayDepth | None = None,
     leaders: bool = False,
     k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
+    cuda_kernels: str | None = None,
 ) -> RenderOutput:
     """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
 
@@ -183,7 +185,10 @@ def rasterize_splats(
     composited on host copies (cpu, else reference) and the outputs moved back. ``k_max_scope``:
     what the softmax head is (docs/kmax-scope.md): ``"pixel"``, each pixel's first k_max composited
     splats; ``"patch"``, the splats at positions < k_max of its 16x16 tile's depth-sorted list.
+    ``cuda_kernels``: which CUDA kernels composite where the cuda backend does (``"default"``, or the
+    opt-in ``"v2"``, docs/cuda.md); None reads ``$SMGS_CUDA_KERNELS`` (default ``"default"``).
     """
+    kernels = kernel_choice(cuda_kernels)
     _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
     width, height = checks.image_size(width, height)
     if eq15 not in ("solved", "printed"):
@@ -209,12 +214,54 @@ def rasterize_splats(
                         reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=leaders,
                         k_max_scope=k_max_scope)
     fn = _load_backend(name)
+    if name == "cuda" and kernels == "v2" and ray_depth is None and not leaders:
+        from smgs.raster.cuda_v2 import rasterize_splats_cuda_v2 as fn
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
     if leaders:
         extra["leaders"] = True
     return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
               mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
               reg_depth_scale=reg_depth_scale, t_min=t_min, k_max_scope=k_max_scope, **extra)
+
+
+def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
+                        eq15: str, k_max: int, t_min: float) -> None:
+    """What ``rasterize_splats`` checks of the inputs that the fused path hands to the compositing
+    without going through it (the 2D splats are the kernel's own)."""
+    if eq15 not in ("solved", "printed"):
+        raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
+    if k_max < 0:
+        raise ValueError(f"k_max must be >= 0, got {k_max}")
+    if not 0.0 <= t_min < 1.0:
+        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    n = means3d.shape[0]
+    use_gef, use_softmax = mode_flags(mode)
+    needed = ([("alpha", alpha)] if use_gef else []) + ([("beta", beta), ("gamma", gamma)] if use_softmax else [])
+    for name, t in needed:
+        if t is None:
+            raise ValueError(f"mode {mode!r} needs {name} [N]; got None")
+        if t.shape != (n,):
+            raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+    checks.float_dtypes([("means3d", means3d), *needed])
+    nch = colors_or_sh.shape[-1]
+    if background is not None and background.numel() != nch:
+        raise ValueError(f"background must have {nch} channels (one per colour), got {background.numel()}")
+    for name, t in [("opacities", opacities), ("colors_or_sh", colors_or_sh), *needed, ("reg_values", reg_values)]:
+        if t is not None and t.device != means3d.device:
+            raise TypeError(f"{name} is on {t.device} but means3d is on {means3d.device}; give every input one device")
+    checks.finite([("opacities", opacities), *needed, ("background", background), ("reg_values", reg_values)],
+                  pos_inf_ok=("gamma",))
+
+
+def _sh_degree(sh_degree: int | None, colors_or_sh: torch.Tensor) -> int | None:
+    """``sh_degree`` after rasterize's shape rule for ``colors_or_sh``."""
+    if sh_degree is None and colors_or_sh.dim() != 2:
+        raise ValueError("colors_or_sh without sh_degree must be [N,C] colours")
+    if sh_degree is not None and colors_or_sh.dim() != 3:
+        raise ValueError("colors_or_sh with sh_degree must be [N,K,C] SH coefficients")
+    if sh_degree is not None and not 0 <= sh_degree <= 3:
+        raise ValueError(f"sh_degree must be 0..3, got {sh_degree}")
+    return sh_degree
 
 
 def rasterize(
@@ -242,6 +289,7 @@ def rasterize(
     sort: str = "global",
     leaders: bool = False,
     k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
+    cuda_kernels: str | None = None,
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
 
@@ -255,9 +303,13 @@ def rasterize(
     order is not differentiated; the compositing and its gradients are those of the mode.
     ``leaders``: the output's ``leaders`` map too, as indices of the Gaussians given here
     (``rasterize_splats`` says how each backend renders it). ``k_max_scope``: ``"pixel"`` or
-    ``"patch"`` (``rasterize_splats``; docs/kmax-scope.md).
+    ``"patch"`` (``rasterize_splats``; docs/kmax-scope.md). ``cuda_kernels`` (as
+    ``rasterize_splats``): with ``"v2"`` a float32 CUDA render in the global order projects (and
+    evaluates SH) in one fused kernel without compaction, so the extras' ``ids`` are every Gaussian
+    and ``radii`` (0, 0) marks the culled ones (docs/cuda.md).
     """
     check_sort(sort)
+    kernels = kernel_choice(cuda_kernels)
     n = means3d.shape[0]
     for name, t, shape in (("means3d", means3d, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
                            ("opacities", opacities, (n,))):
@@ -269,6 +321,15 @@ def rasterize(
                    ("camera.K", camera.K), ("camera.viewmat", camera.viewmat)])
     checks.non_negative("scales", scales)
     checks.image_size(camera.width, camera.height)
+    if (kernels == "v2" and sort == "global" and not leaders
+            and resolve_backend(backend, means3d.device, means3d.dtype) == "cuda"):
+        from smgs.raster.cuda_v2 import rasterize_fused
+
+        _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
+                            eq15, k_max, t_min)
+        return rasterize_fused(means3d, quats, scales, opacities, colors_or_sh, camera, alpha, beta, gamma, mode,
+                               k_max, _sh_degree(sh_degree, colors_or_sh), background, eq15, reg_values,
+                               reg_depth_scale, near_plane, eps2d, clamp_sh_colors, t_min, k_max_scope)
     # The reference backend is the oracle: pure PyTorch throughout, so its projection is too.
     proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
                              fused=False if backend == "reference" else None)

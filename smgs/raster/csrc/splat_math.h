@@ -58,8 +58,44 @@ SMGS_HD inline float vabs(float x) { return fabsf(x); }
 SMGS_HD inline float vsqrt(float x) { return sqrtf(x); }
 SMGS_HD inline float vexp(float x) { return expf(x); }
 SMGS_HD inline float vlog(float x) { return logf(x); }
+#if defined(SMGS_CUDA_FAST) && defined(__CUDA_ARCH__)
+// The opt-in CUDA kernels (cuda_v2_kernel.cu, docs/cuda.md): the MUFU approximations (~1 ulp, as a
+// SIMD lane's), for x > 0 normal only, as documented above.
+SMGS_HD inline float vrcp(float x) {
+  float r;
+  asm("rcp.approx.f32 %0, %1;" : "=f"(r) : "f"(x));
+  return r;
+}
+SMGS_HD inline float vsqrt_pos(float x) {
+  float r;
+  asm("sqrt.approx.f32 %0, %1;" : "=f"(r) : "f"(x));
+  return r;
+}
+#else
 SMGS_HD inline float vrcp(float x) { return 1.0f / x; }
 SMGS_HD inline float vsqrt_pos(float x) { return sqrtf(x); }
+#endif
+// a·b and a + b rounded on their own, never fused into an FMA: the arithmetic behind the reach,
+// skip and stop decisions, so that a kernel built with FMA contraction (the opt-in CUDA kernels)
+// decides as the other backends do. Elsewhere (contraction off) they are the plain operators.
+template <class V>
+SMGS_HD inline V mul_rn(V a, V b) { return a * b; }
+template <class V>
+SMGS_HD inline V add_rn(V a, V b) { return a + b; }
+SMGS_HD inline float mul_rn(float a, float b) {
+#if defined(__CUDA_ARCH__)
+  return __fmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+SMGS_HD inline float add_rn(float a, float b) {
+#if defined(__CUDA_ARCH__)
+  return __fadd_rn(a, b);
+#else
+  return a + b;
+#endif
+}
 
 // ---- the kernel: q = -p, the GEF exponent and the absorbance a ----------------------------------
 
@@ -93,12 +129,13 @@ SMGS_HD inline Quad<V> splat_quad(V px, V py, float mx, float my, Factor f) {
   Quad<V> k;
   k.dx = px - V(mx);
   k.dy = py - V(my);
+  // mul_rn/add_rn: q decides reach (q <= 4.5) and the absorbance (a >= 1/255), never fused
   if (f.ha != 0.f) {   // per splat, so the same branch for every lane
-    k.w = k.dx + V(f.r) * k.dy;
-    k.qraw = V(f.ha) * (k.w * k.w) + V(f.hs) * (k.dy * k.dy);
+    k.w = add_rn(k.dx, mul_rn(V(f.r), k.dy));
+    k.qraw = add_rn(mul_rn(V(f.ha), mul_rn(k.w, k.w)), mul_rn(V(f.hs), mul_rn(k.dy, k.dy)));
   } else {
     k.w = k.dx;
-    k.qraw = V(f.r) * (k.dx * k.dy) + V(f.hs) * (k.dy * k.dy);
+    k.qraw = add_rn(mul_rn(V(f.r), mul_rn(k.dx, k.dy)), mul_rn(V(f.hs), mul_rn(k.dy, k.dy)));
   }
   k.q = max_c(k.qraw, V(0.0f));   // an indefinite conic has qraw < 0 somewhere
   return k;

@@ -1,0 +1,187 @@
+"""The opt-in CUDA kernels ("v2"; docs/cuda.md): the fused projection (``projection_cuda``) and the
+v2 compositing kernels (``csrc/cuda_v2_kernel.cu``: FMA with bit-equal reach and stop decisions, a
+lean shared-memory batch, the softmax backward's head as whole 32-byte records in a persistent grid).
+
+Selected with ``rasterize(..., cuda_kernels="v2")`` / ``rasterize_splats(..., cuda_kernels="v2")``
+or ``SMGS_CUDA_KERNELS=v2`` (``kernel_choice``); the default stays the CUDA path last verified on a
+GPU (``smgs.raster.cuda``) until a GPU run has verified these (tests/test_raster_cuda_v2.py, marked
+gpu). The interface mirrors ``smgs.raster.cuda``; the compositing takes ``radii`` in addition, the
+fused projection's cull marks.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from smgs.camera import Camera
+from smgs.raster import constants as K
+from smgs.raster.buildcache import ExtensionSpec, compile_and_load
+from smgs.raster.jit import JitExtension
+from smgs.raster.kernel_args import CompositeSettings, composite_settings, kernel_grads, kernel_inputs, kernel_output
+from smgs.raster.types import Eq15, KMaxScope, RenderOutput
+
+_CSRC = Path(__file__).parent / "csrc"
+# cuda_kernel.cu brings the default backend's binning (prepare, prefix sum, keys, sort, ranges)
+SOURCES = ("cuda_v2_binding.cpp", "cuda_kernel.cu", "cuda_v2_kernel.cu")
+HEADERS = ("cuda_kernel.h", "cuda_v2_kernel.h", "splat_math.h")
+# FMA contraction on (nvcc's default); the reach arithmetic is written with mul_rn/add_rn, which are
+# never fused (splat_math.h), so the decisions stay the other backends'.
+CUDA_CFLAGS = ["-O3", "--fmad=true"]
+CFLAGS = ["-O3"]
+# Bound of the softmax backward's head scratch (the persistent grid shrinks to fit it).
+HEAD_BUDGET_BYTES = 512 * 2**20
+
+KERNELS = ("default", "v2")
+KERNELS_ENV = "SMGS_CUDA_KERNELS"
+
+
+def kernel_choice(cuda_kernels: str | None) -> str:
+    """Which CUDA kernels render: the argument, else ``$SMGS_CUDA_KERNELS``, else ``"default"``."""
+    choice = cuda_kernels if cuda_kernels is not None else (os.environ.get(KERNELS_ENV, "").strip() or "default")
+    if choice not in KERNELS:
+        where = "cuda_kernels" if cuda_kernels is not None else KERNELS_ENV
+        raise ValueError(f"{where}={choice!r} is not a set of CUDA kernels; choose one of {', '.join(KERNELS)} "
+                         "(docs/cuda.md)")
+    return choice
+
+
+def _why_not_buildable() -> str | None:
+    from smgs.raster import cuda
+
+    return cuda._why_not_buildable()
+
+
+def _build(suffix: str = "", defines: tuple[str, ...] = ()):
+    from smgs.raster.cuda import _arch_tag
+
+    return compile_and_load(ExtensionSpec(
+        name=f"smgs_raster_cuda_v2{suffix}", sources=tuple(_CSRC / s for s in SOURCES),
+        what="CUDA renderer kernels (v2)", include_dirs=(_CSRC,), cflags=tuple(CFLAGS) + defines,
+        cuda_cflags=tuple(CUDA_CFLAGS) + defines, target=f"sm{_arch_tag()} {os.environ.get('TORCH_CUDA_ARCH_LIST', '')}"))
+
+
+_JIT = JitExtension("cuda", _build, _why_not_buildable, quiet_precheck=True, what="renderer kernels (v2)",
+                    disable="SMGS_DISABLE_CUDA_BACKEND")
+is_available = _JIT.is_available
+unavailable_reason = _JIT.unavailable_reason
+
+
+def extension(t_min: float = K.T_MIN):
+    """The loaded v2 extension (builds it if needed; a non-default ``t_min`` is compiled in)."""
+    return _JIT.module(t_min)
+
+
+class _RasterizeCUDAv2(torch.autograd.Function):
+    """``cuda._RasterizeCUDA`` with the v2 extension and the cull marks ``radii``."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values,
+                radii, settings: CompositeSettings, ext):
+        st = settings
+        empty = means2d.new_empty(0)
+        opt = lambda t: empty if t is None else t  # noqa: E731
+        rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, pk, ranges, tile_list = ext.forward(
+            means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
+            opt(reg_values), opt(radii), st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+            st.reg_depth_scale, st.patch)
+        ctx.save_for_backward(alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, opt(background))
+        ctx.settings = st
+        ctx.ext = ext
+        ctx.n_splats = means2d.shape[0]
+        ctx.n_channels = colors.shape[1]
+        ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
+        ctx.mark_non_differentiable(cnt, pairs, t_final, last)
+        # `last` (1 + the tile-list position of the last composited splat) is the stats' list_end
+        return rgb, alpha_out, depth, reg, cnt, pairs, t_final, last
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t, _g_last):
+        alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg = ctx.saved_tensors
+        st = ctx.settings
+        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
+        g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
+        (grad,) = ctx.ext.backward(
+            g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg,
+            ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
+            st.solved, st.reg_depth_scale, HEAD_BUDGET_BYTES, st.patch)
+        grads = split_packed(grad, ctx.ext.layout(), ctx.n_channels, ctx.n_reg)
+        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=3)   # radii, settings, ext
+
+
+def split_packed(grad: torch.Tensor, layout: list[int], nch: int, nreg: int) -> list[torch.Tensor]:
+    """The gradients of means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values as
+    column views of the packed [N, S] gradient (no copies; ``layout`` is the binding's ``layout()``)."""
+    mx, my, ca, cc, o, d, al, be, ga, col = layout
+    assert my == mx + 1 and cc == ca + 2, layout
+    return [grad[:, mx:my + 1], grad[:, ca:cc + 1], grad[:, o], grad[:, col:col + nch], grad[:, d], grad[:, al],
+            grad[:, be], grad[:, ga], grad[:, col + nch:col + nch + nreg]]
+
+
+def composite(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
+              background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN,
+              radii: torch.Tensor | None = None, k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE) -> RenderOutput:
+    """The v2 compositing with the extension passed in (the CPU plumbing test passes a stand-in)."""
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
+    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    r = None if radii is None else radii.detach().contiguous()
+    rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDAv2.apply(*args, r, st, ext)
+    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs,
+                         list_end=last)
+
+
+def rasterize_splats_cuda_v2(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    depths: torch.Tensor,
+    alpha: torch.Tensor | None,
+    beta: torch.Tensor | None,
+    gamma: torch.Tensor | None,
+    width: int,
+    height: int,
+    mode: str = "softmax_gs",
+    k_max: int = K.DEFAULT_K_MAX,
+    background: torch.Tensor | None = None,
+    eq15: Eq15 = "solved",
+    reg_values: torch.Tensor | None = None,
+    reg_depth_scale: float = 1.0,
+    t_min: float = K.T_MIN,
+    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
+    radii: torch.Tensor | None = None,
+) -> RenderOutput:
+    """``smgs.raster.cuda.rasterize_splats_cuda`` through the v2 kernels; ``radii [N,2]`` (optional):
+    rows with radii (0, 0) are not splats (the fused projection's culled Gaussians)."""
+    return composite(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
+                     mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, radii, k_max_scope)
+
+
+def rasterize_fused(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                    colors_or_sh: torch.Tensor, camera: Camera, alpha: torch.Tensor | None,
+                    beta: torch.Tensor | None, gamma: torch.Tensor | None, mode: str, k_max: int,
+                    sh_degree: int | None, background: torch.Tensor | None, eq15: Eq15,
+                    reg_values: torch.Tensor | None, reg_depth_scale: float, near_plane: float, eps2d: float,
+                    clamp_sh_colors: bool, t_min: float, k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
+                    exts: tuple | None = None) -> RenderOutput:
+    """``smgs.raster.rasterize`` on CUDA tensors through the opt-in kernels, the inputs already checked
+    there: the fused projection (and SH) of every Gaussian, then the v2 compositing, which skips the
+    culled rows. No gathers: the extras' ``ids`` are all Gaussians (``arange``), ``radii`` (0, 0)
+    marking the culled ones, as the densification statistics read them. ``exts`` = (projection,
+    compositing) stand-ins for the CPU plumbing test."""
+    from smgs.raster import projection_cuda
+
+    pext, cext = exts if exts is not None else (projection_cuda.extension(), extension(t_min))
+    sh = colors_or_sh if sh_degree is not None else None
+    proj = projection_cuda.project_fused(means3d, quats, scales, camera, sh=sh, sh_degree=sh_degree,
+                                         clamp_sh_colors=clamp_sh_colors, near_plane=near_plane, eps2d=eps2d,
+                                         ext=pext)
+    colors = proj.colors if sh is not None else colors_or_sh
+    out = composite(cext, proj.means2d, proj.conics, opacities, colors, proj.depths, alpha, beta, gamma, camera.width,
+                    camera.height, mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, proj.radii,
+                    k_max_scope)
+    ids = torch.arange(means3d.shape[0], device=means3d.device)
+    out.extras.update(ids=ids, means2d=proj.means2d, radii=proj.radii)
+    return out
