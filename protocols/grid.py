@@ -51,3 +51,26 @@ def expand(methods: list[str], datasets: dict[str, list[str]], budgets: list[str
     if len(set(cells)) != len(cells):
         raise ValueError("the grid lists a method, dataset, budget or seed twice")
     return cells
+
+
+def path_name_problem(key: str, name: str) -> str | None:
+    """Why ``name`` (the value of ``key``) cannot be one folder name below the output root (None
+    when it can): a name that becomes a path must not climb out of it or split into folders."""
+    if name in ("", ".", ".."):
+        return f"{key}={name!r} cannot name a folder"
+    bad = [c for c in ("/", "\\", "\0") if c in name]
+    if bad:
+        return f"{key}={name!r} contains {' and '.join(map(repr, bad))}: it must be one folder name"
+    return None
+
+
+def check_path_names(experiment_name: str, cells: list[Cell]) -> None:
+    """Every name that becomes a path (the experiment's folder, each cell's dataset, scene, method
+    and budget folders) stays one folder name below the output root; ValueError naming the key."""
+    problems = [path_name_problem("experiment_name", experiment_name)]
+    for c in cells:
+        problems += [path_name_problem(k, getattr(c, k)) for k in ("dataset", "scene", "method", "budget")]
+    problems = list(dict.fromkeys(p for p in problems if p))
+    if problems:
+        raise ValueError("; ".join(problems) + " (names become folders below out_dir; set out_dir=PATH to "
+                         "write elsewhere)")

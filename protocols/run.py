@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from protocols.executors import Terminated, on_sigterm
-from protocols.grid import Cell, expand
+from protocols.grid import Cell, check_path_names, expand, path_name_problem
 
 log = logging.getLogger("smgs.protocols")
 
@@ -59,6 +59,41 @@ def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
     return [str(s) for s in scenes]
 
 
+def _given(overrides: list[str], key: str) -> str | None:
+    """The value the command line gives ``key`` (``key=V``, ``+key=V`` or ``++key=V``; the last)."""
+    value = None
+    for o in overrides:
+        k, sep, v = o.lstrip("+").partition("=")
+        if sep and k == key:
+            value = v
+    return value
+
+
+def _seed_given(cfg: DictConfig, overrides: list[str]) -> list[int] | None:
+    """``seed=N`` on the command line: [N], also under an experiment whose ``grid.seeds`` (or
+    ``grid.seeds_of``) lists other seeds, which it replaces (and says so); None when not given.
+    Given with ``seeds=M`` or with a ``grid.seeds`` that is not [N], the sweep stops naming both."""
+    given = _given(overrides, "seed")
+    if given is None:
+        return None
+    try:
+        n = int(given)
+    except ValueError:
+        raise SystemExit(f"invalid config, nothing was run: seed={given!r} is not an integer") from None
+    if cfg.get("seeds") is not None:
+        raise SystemExit(f"invalid config, nothing was run: seed={given} and seeds={cfg.get('seeds')} disagree; give "
+                         "seed=N to run one seed, or seeds=M to run seeds 0 … M-1")
+    listed = [str(x) for x in cfg.grid.seeds]
+    if _given(overrides, "grid.seeds") is not None and listed != [str(n)]:
+        raise SystemExit(f"invalid config, nothing was run: seed={given} and grid.seeds=[{', '.join(listed)}] "
+                         "disagree; give seed=N to run one seed, or grid.seeds=[...] to run several")
+    seeds_of = cfg.grid.get("seeds_of") or {}
+    if listed != [str(n)] or seeds_of:
+        print(f"seed={n}: running seed {n} (instead of the experiment's grid.seeds [{', '.join(listed)}]"
+              + (f" and grid.seeds_of {OmegaConf.to_container(seeds_of)}" if seeds_of else "") + ")", flush=True)
+    return [n]
+
+
 def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
     """The grid's cells and their payloads (resolved configs and run directories)."""
     from baselines.registry import get_spec
@@ -67,9 +102,13 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
     for m in grid.methods:
         get_spec(str(m))  # an unknown method stops here, naming the registered ones
     datasets = {str(d): _scenes_of(str(d), overrides) for d in grid.datasets}
-    seeds, seeds_of = grid_seeds(cfg)
+    seeds, seeds_of = grid_seeds(cfg, overrides)
     cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds,
                    None if grid.scenes is None else [str(s) for s in grid.scenes], seeds_of)
+    try:
+        check_path_names(str(cfg.experiment_name), cells)
+    except ValueError as e:
+        raise SystemExit(f"invalid config, nothing was run: {e}") from None
     out = Path(cfg.out_dir)
     payloads = []
     for c in cells:
@@ -78,10 +117,14 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
     return cells, payloads
 
 
-def grid_seeds(cfg: DictConfig) -> tuple[list[int], dict[str, list[int]]]:
-    """The grid's seeds and per-method exceptions: ``seeds=N`` runs seeds 0 … N−1 of every method;
-    otherwise ``grid.seeds``, with ``grid.seeds_of`` (method -> seeds) for the methods it names
+def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], dict[str, list[int]]]:
+    """The grid's seeds and per-method exceptions: ``seed=N`` on the command line runs seed N
+    (``_seed_given``, docs/runs.md); ``seeds=N`` runs seeds 0 … N−1 of every method; otherwise
+    ``grid.seeds``, with ``grid.seeds_of`` (method -> seeds) for the methods it names
     (docs/reports.md, "Running N seeds")."""
+    one = _seed_given(cfg, list(overrides))
+    if one is not None:
+        return one, {}
     n = cfg.get("seeds")
     if n is not None:
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
@@ -189,6 +232,12 @@ def cli() -> None:
     # `--force` is accepted as a flag as well as the Hydra override force=true
     if "--force" in sys.argv:
         sys.argv = [a for a in sys.argv if a != "--force"] + ["force=true"]
+    name = _given(sys.argv[1:], "experiment_name")   # before Hydra makes ${out_dir}/_hydra from it
+    problem = path_name_problem("experiment_name", name) if name is not None else None
+    if problem:
+        print(f"error: {problem} (it names the folder below the output root; set out_dir=PATH to write "
+              "elsewhere)", file=sys.stderr, flush=True)
+        raise SystemExit(2)
     signal.signal(signal.SIGTERM, on_sigterm)
     try:
         main()
