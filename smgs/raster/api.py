@@ -225,9 +225,10 @@ def rasterize_splats(
 
 
 def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
-                        eq15: str, k_max: int, t_min: float) -> None:
+                        eq15: str, k_max: int, t_min: float) -> list[tuple[str, torch.Tensor | None]]:
     """What ``rasterize_splats`` checks of the inputs that the fused path hands to the compositing
-    without going through it (the 2D splats are the kernel's own)."""
+    without going through it (the 2D splats are the kernel's own); returns those whose finiteness
+    the caller checks (γ may be +inf)."""
     if eq15 not in ("solved", "printed"):
         raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
     if k_max < 0:
@@ -249,8 +250,7 @@ def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mo
     for name, t in [("opacities", opacities), ("colors_or_sh", colors_or_sh), *needed, ("reg_values", reg_values)]:
         if t is not None and t.device != means3d.device:
             raise TypeError(f"{name} is on {t.device} but means3d is on {means3d.device}; give every input one device")
-    checks.finite([("opacities", opacities), *needed, ("background", background), ("reg_values", reg_values)],
-                  pos_inf_ok=("gamma",))
+    return [("opacities", opacities), *needed, ("background", background), ("reg_values", reg_values)]
 
 
 def _sh_degree(sh_degree: int | None, colors_or_sh: torch.Tensor) -> int | None:
@@ -317,16 +317,19 @@ def rasterize(
             raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
     checks.float_dtypes([("means3d", means3d), ("quats", quats), ("scales", scales), ("opacities", opacities),
                          ("colors_or_sh", colors_or_sh)])
+    fused = (kernels == "v2" and sort == "global" and not leaders
+             and resolve_backend(backend, means3d.device, means3d.dtype) == "cuda")
+    # the fused path hands the per-Gaussian inputs to its compositing without rasterize_splats'
+    # checks: they are checked here, in the same finiteness pass (one synchronisation)
+    more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
+                               eq15, k_max, t_min) if fused else []
     checks.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
-                   ("camera.K", camera.K), ("camera.viewmat", camera.viewmat)])
+                   ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more], pos_inf_ok=("gamma",))
     checks.non_negative("scales", scales)
     checks.image_size(camera.width, camera.height)
-    if (kernels == "v2" and sort == "global" and not leaders
-            and resolve_backend(backend, means3d.device, means3d.dtype) == "cuda"):
+    if fused:
         from smgs.raster.cuda_v2 import rasterize_fused
 
-        _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
-                            eq15, k_max, t_min)
         return rasterize_fused(means3d, quats, scales, opacities, colors_or_sh, camera, alpha, beta, gamma, mode,
                                k_max, _sh_degree(sh_degree, colors_or_sh), background, eq15, reg_values,
                                reg_depth_scale, near_plane, eps2d, clamp_sh_colors, t_min, k_max_scope)

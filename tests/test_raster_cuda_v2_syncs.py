@@ -1,0 +1,116 @@
+"""The fused v2 path (``rasterize(..., cuda_kernels="v2")``) on a stand-in device (tests/device_mix.py):
+no operator mixes the host camera with the device's tensors, and the host synchronisations of one
+forward and one backward are counted: the binding's pair count is the only one of its own (the
+projection adds none: no ``nonzero``, no camera copies), the backward has none without softmax and
+one with (the most crowded pixel's count), and a forward costs fewer than the default path's. The
+bindings are the stand-ins of tests/cuda_v2_standin.py, run on the host values outside the mode
+(that is the GPU's own work), their synchronisations counted where the real bindings make them.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from cuda_v2_standin import StandInCompositing, StandInProjection
+from device_mix import CPU, OTHER, Remote, simulated_gpu
+
+from smgs.camera import Camera
+from smgs.raster import cuda_v2, projection_cuda, rasterize
+from smgs.raster.types import MODES, mode_flags
+
+
+class _OnHost:
+    """A stand-in binding for Remote tensors: computes on their host values with the dispatch mode
+    off, returns its outputs on the stand-in device, and counts the real binding's synchronisations."""
+
+    def __init__(self, base, mode, forward_sync: str | None = None, softmax_backward_sync: str | None = None):
+        self.base, self.mode = base, mode
+        self.forward_sync, self.softmax_backward_sync = forward_sync, softmax_backward_sync
+
+    def _on_host(self, fn, args):
+        from torch.utils._python_dispatch import _disable_current_modes
+
+        with _disable_current_modes():
+            out = fn(*[a.inner if type(a) is Remote else a for a in args])
+        return [Remote(t) for t in out]
+
+    def layout(self) -> list[int]:
+        return self.base.layout()
+
+    def forward(self, *args):
+        out = self._on_host(self.base.forward, args)
+        if self.forward_sync:
+            self.mode.sync(self.forward_sync)
+        return out
+
+    def backward(self, *args):
+        if self.softmax_backward_sync and any(a is True for a in args[-5:]) and _softmax(self.base, args):
+            self.mode.sync(self.softmax_backward_sync)
+        return self._on_host(self.base.backward, args)
+
+
+def _softmax(base, args) -> bool:
+    from cuda_v2_standin import params
+
+    names = [n for _, n in params(base.src, "backward_v2")]
+    return bool(dict(zip(names, args))["use_softmax"])
+
+
+def _splats(n: int, device, sh: bool) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(4)
+    r = lambda *s: torch.rand(*s, generator=g)  # noqa: E731
+    means = (r(n, 3) - 0.5) * torch.tensor([2.0, 1.6, 1.0]) + torch.tensor([0.0, 0.0, 3.0])
+    means[:3, 2] = -2.0   # behind the camera
+    s = dict(means3d=means, quats=r(n, 4) - 0.5, scales=0.05 + 0.1 * r(n, 3), opacities=0.3 + 0.6 * r(n),
+             colors=0.5 * (r(n, 4, 3) - 0.5) if sh else r(n, 3), alpha=0.5 + 2 * r(n), beta=8 * r(n), gamma=2 * r(n))
+    return {k: v.to(device).requires_grad_(True) for k, v in s.items()}
+
+
+def _render(s, cam, mode, sh, **kw):
+    bg = torch.tensor([0.1, 0.2, 0.3], device=s["means3d"].device)
+    return rasterize(s["means3d"], s["quats"], s["scales"], s["opacities"], s["colors"], cam, alpha=s["alpha"],
+                     beta=s["beta"], gamma=s["gamma"], mode=mode, k_max=4, sh_degree=1 if sh else None, background=bg,
+                     **kw)
+
+
+def _counted(mode_obj, fn) -> tuple[int, list[str]]:
+    before, where = sum(mode_obj.counts.values()), len(mode_obj.where)
+    fn()
+    return sum(mode_obj.counts.values()) - before, mode_obj.where[where:]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_once(monkeypatch, mode):
+    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+    sh = mode in ("gef_only", "softmax_gs")
+    want = _splats(60, CPU, sh)
+    ref = _render(want, cam, mode, sh, backend="reference")
+    (ref.rgb.mean() + ref.depth.mean()).backward()
+    with simulated_gpu(monkeypatch) as m:
+        proj = _OnHost(StandInProjection(), m)
+        comp = _OnHost(StandInCompositing(), m, "binding forward: the pair count",
+                       "binding backward: the most crowded pixel's count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        s = _splats(60, OTHER, sh)
+        box = {}
+        n_fwd, where_fwd = _counted(m, lambda: box.update(out=_render(s, cam, mode, sh, cuda_kernels="v2")))
+        out = box["out"]
+        n_bwd, where_bwd = _counted(m, lambda: (out.rgb.mean() + out.depth.mean()).backward())
+        assert proj.base.calls == ["project_forward_torch", "project_backward_torch"]
+        assert comp.base.calls == ["forward_v2", "backward_v2"]
+        assert out.rgb.device == OTHER and s["means3d"].grad.device == OTHER
+        torch.testing.assert_close(out.rgb.cpu(), ref.rgb, rtol=1e-5, atol=1e-6)
+        for k, v in s.items():
+            if want[k].grad is None:
+                assert v.grad is None or (v.grad.cpu() == 0).all(), k
+            else:
+                torch.testing.assert_close(v.grad.cpu(), want[k].grad, rtol=1e-4, atol=1e-6, msg=k)
+        # the default path on the same device, for comparison (device_mix's stand-in of the default binding)
+        s2 = _splats(60, OTHER, sh)
+        n_default, _ = _counted(m, lambda: _render(s2, cam, mode, sh))
+    ours = [w for w in where_fwd if "smgs/raster/projection" in w or "smgs/raster/cuda_v2" in w]
+    assert not ours, where_fwd
+    assert sum("the pair count" in w for w in where_fwd) == 1, where_fwd
+    assert n_fwd < n_default, (n_fwd, n_default, where_fwd)
+    assert n_bwd == (1 if mode_flags(mode)[1] else 0), where_bwd
