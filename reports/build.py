@@ -29,7 +29,7 @@ from reports.plots import Plot, pareto_plots, time_curves
 from reports.popping import popping_section, wants_popping
 from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
 from reports.stability_section import compute_stability, stability_section
-from reports.table_model import Section, md_text
+from reports.table_model import SEEDS_GUIDE, Section, md_text
 from reports.tables import Context, table1, table2, table3, table4, table5
 from reports.tradeoff import tradeoff_points
 
@@ -152,7 +152,7 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
         out.append("")
     out.append(f"Paper's numbers: {md_text(paper_error)}." if paper_error else
                "Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).")
-    out += ["", READING_GUIDE, ""]
+    out += ["", READING_GUIDE, "", SEEDS_GUIDE, ""]
     out.append(_problems(loaded, runs))
     for sec in sections:
         out.append(sec.markdown(link=lambda name: _link(files, name)))

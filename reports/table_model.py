@@ -24,6 +24,10 @@ DASH = "—"
 TIE = "tie"            # rank of values that share the best place within their seeds' spread
 RESOLVED = "✱"         # after an interval that excludes 0
 Rank = Literal[1, 2, "tie"]
+SEEDS_GUIDE = ("Values are means over seeds; with two or more seeds ± is their standard deviation (n in the note "
+               "under each table; a dataset mean's ± is propagated from its scenes'), and best / second need a lead "
+               "larger than that spread, a lead inside it is marked (tie). The paired differences under Tables 1, 2, "
+               "4 and 5 give A − B seed by seed with its 95 % Student t interval, ✱ where the interval excludes 0.")
 ONE_SEED_NOTE = ("One seed per value: no spread available (more seeds: grid.seeds=[0,1,2] or seeds=3; "
                  "docs/reports.md).")
 

@@ -321,7 +321,8 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
                      "A mean is only over scenes that every row of the same preset ran; a mean over fewer "
                      "scenes than the dataset has is footnoted. Groups as in the paper: extreme sparse (5%), "
                      "sparse (mini, light), dense (full, and MCMC at a cap: mcmc_<cap>). Best of a group in bold, "
-                     "second in italics.")
+                     "second in italics. ± of a dataset mean is the sd one seed's mean over its S scenes would have, "
+                     "from the scenes' seed sds: √(Σ sd²) / S; n is the fewest seeds of a scene.")
     all_rows = []
     for ds in sorted({r.dataset for r in real}, key=dataset_rank):
         dm = dataset_means(ds, real, T2_GETTERS)

@@ -21,7 +21,7 @@ from reports.html.figures import Figure, consistency_figures, params_figure, par
 from reports.html.images import strips, viewers
 from reports.html.tables_html import plain_table, records_table, section_html
 from reports.runs import LoadedRuns, one_line, preset_description
-from reports.table_model import Section
+from reports.table_model import SEEDS_GUIDE, Section
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 RUN_COLUMNS = ["dataset", "scene", "method", "budget", "cap", "seed", "preset", "status", "psnr", "ssim", "lpips",
@@ -152,6 +152,7 @@ def _header(runs_dir: Path, runs: list[RunResult], paper_error: str | None) -> s
                "and <em>italics</em> the second best among rows that compete. \"—\" means there is no value; its "
                "footnote says why. \"[cpu]\" marks a row of a reduced protocol preset. Click a column header to sort; "
                "hover a plot for its runs; click a legend entry to hide or show a method.</p>")
+    out.append(f"<p>{esc(SEEDS_GUIDE)}</p>")
     return "\n".join(out)
 
 
