@@ -112,12 +112,18 @@ class _Mode(TorchDispatchMode):
         super().__init__()
         self.strict = strict
         self.counts: Counter[str] = Counter()
+        self.syncs = 0      # host waits so far (never reset: FakeEvent compares against it)
         self.where: list[str] = []
         self.mixed: list[str] = []
 
     def sync(self, what: str) -> None:
         self.counts[what] += 1
+        self.syncs += 1
         self.where.append(f"{what}: {_our_frame()}")
+
+    def reset(self) -> None:
+        self.counts.clear()
+        self.where.clear()
 
     def _mixed(self, func, tensors) -> None:
         msg = f"{func} mixes {', '.join(sorted({str(t.device) for t in tensors}))} tensors: {_our_frame()}"
@@ -256,16 +262,34 @@ class HostStandIn:
         return self._on_host(self.base.backward, args)
 
 
+class FakeEvent:
+    """A CUDA event on the stand-in device's one stream: complete once the host has waited on the
+    stream after it was recorded (any counted synchronisation drains the stream)."""
+
+    def __init__(self, mode: _Mode) -> None:
+        self.mode = mode
+        self.at = mode.syncs
+
+    def query(self) -> bool:
+        return self.mode.syncs > self.at
+
+    def synchronize(self) -> None:
+        if not self.query():
+            self.mode.sync("event wait")
+
+
 @contextmanager
 def simulated_gpu(monkeypatch, strict: bool = True) -> Iterator[_Mode]:
     """``other_device`` plus what a run on it needs: ``device="meta"`` accepted where a run's device
     is resolved, generators for it (CPU ones: ``meta`` has none), torch's fused Adam allowed on it,
-    and the CUDA backend available for its tensors, with ``HostStandIn`` as the compiled extension.
+    and the CUDA backend available for its tensors, with ``HostStandIn`` as the compiled extension
+    and ``FakeEvent`` as its events.
     So a render, a training step or a protocol cell takes the CUDA backend's Python path while the
     camera and the scene stay on the host."""
     import smgs.device
     import smgs.raster.api as api
     import smgs.raster.cuda as cuda_backend
+    import smgs.raster.device_glue as glue
 
     real_resolve, real_available, real_gen = smgs.device.resolve_device, api.backend_available, torch.Generator
 
@@ -294,5 +318,8 @@ def simulated_gpu(monkeypatch, strict: bool = True) -> Iterator[_Mode]:
     with other_device(strict) as mode:
         ext = HostStandIn(mode)
         monkeypatch.setattr(cuda_backend, "extension", lambda t_min=None: ext)
+        real_event = glue.record_event
+        monkeypatch.setattr(glue, "record_event",
+                            lambda device: FakeEvent(mode) if device.type == OTHER.type else real_event(device))
         monkeypatch.setattr(torch, "Generator", Generator)
         yield mode

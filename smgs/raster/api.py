@@ -11,7 +11,8 @@ from smgs.camera import Camera
 from smgs.raster import checks
 from smgs.raster import constants as K
 from smgs.raster.cuda_v2 import kernel_choice
-from smgs.raster.projection import project_gaussians
+from smgs.raster.device_glue import lean, to_device
+from smgs.raster.projection import VIEW_FLOATS, host_view, project_gaussians
 from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import eval_sh
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats, mode_flags, scope_is_patch
@@ -78,8 +79,9 @@ BACKEND_NAMES: tuple[str, ...] = tuple(_BACKENDS)
 
 
 def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode,
-                  background=None, reg_values=None) -> None:
-    """Shapes, dtypes and finiteness (``smgs.raster.checks`` has the policy), before any backend."""
+                  background=None, reg_values=None, chk: checks.InputChecks | None = None) -> None:
+    """Shapes, dtypes and finiteness (``smgs.raster.checks`` has the policy), before any backend
+    (the finiteness through ``chk`` where given, which may decide it after the render)."""
     named = [("means2d", means2d), ("conics", conics), ("opacities", opacities), ("colors", colors),
              ("depths", depths), ("alpha", alpha), ("beta", beta), ("gamma", gamma)]
     checks.float_dtypes(named)
@@ -107,8 +109,9 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
         if t is not None and t.device != dev:
             raise TypeError(f"{name} is on {t.device} but means2d is on {dev}; give every input one device")
     used = {"alpha": use_gef, "beta": use_softmax, "gamma": use_softmax}
-    checks.finite([(k, t) for k, t in named if used.get(k, True)]
-                  + [("background", background), ("reg_values", reg_values)], pos_inf_ok=("gamma",))
+    (chk or checks.InputChecks()).finite([(k, t) for k, t in named if used.get(k, True)]
+                                         + [("background", background), ("reg_values", reg_values)],
+                                         pos_inf_ok=("gamma",))
 
 
 def _per_pixel_backend(device: torch.device, dtype: torch.dtype, reg_values: torch.Tensor | None) -> str:
@@ -188,8 +191,18 @@ def rasterize_splats(
     ``cuda_kernels``: which CUDA kernels composite where the cuda backend does (``"default"``, or the
     opt-in ``"v2"``, docs/cuda.md); None reads ``$SMGS_CUDA_KERNELS`` (default ``"default"``).
     """
+    return _rasterize_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
+                             k_max, background, backend, eq15, reg_values, reg_depth_scale, t_min, ray_depth,
+                             leaders, k_max_scope, cuda_kernels, checks.InputChecks(defer=lean(means2d.device)))
+
+
+def _rasterize_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
+                      background, backend, eq15, reg_values, reg_depth_scale, t_min, ray_depth, leaders,
+                      k_max_scope, cuda_kernels, chk: checks.InputChecks) -> RenderOutput:
+    """``rasterize_splats`` with its input checks in ``chk`` (``rasterize`` adds the 3D inputs'):
+    decided before the backend runs, or, deferred (the lean GPU glue), read right after it."""
     kernels = kernel_choice(cuda_kernels)
-    _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values)
+    _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values, chk)
     width, height = checks.image_size(width, height)
     if eq15 not in ("solved", "printed"):
         raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
@@ -209,19 +222,31 @@ def rasterize_splats(
     else:
         name = resolve_backend(backend, means2d.device, means2d.dtype)
     if name == "host" or (leaders and name == "cuda"):
-        return _on_host(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                        mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-                        reg_depth_scale=reg_depth_scale, t_min=t_min, ray_depth=ray_depth, leaders=leaders,
-                        k_max_scope=k_max_scope)
-    fn = _load_backend(name)
+        fn = _on_host
+    else:
+        fn = _load_backend(name)
     if name == "cuda" and kernels == "v2" and ray_depth is None and not leaders:
         from smgs.raster.cuda_v2 import rasterize_splats_cuda_v2 as fn
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
     if leaders:
         extra["leaders"] = True
-    return fn(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-              mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-              reg_depth_scale=reg_depth_scale, t_min=t_min, k_max_scope=k_max_scope, **extra)
+    return _settled(chk, fn, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
+                    mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
+                    reg_depth_scale=reg_depth_scale, t_min=t_min, k_max_scope=k_max_scope, **extra)
+
+
+def _settled(chk: checks.InputChecks, fn: Callable[..., RenderOutput], *args, **kwargs) -> RenderOutput:
+    """``fn(*args, **kwargs)`` with ``chk`` settled after it (deferred checks are read with the
+    backend's own wait), also when it raised: a bad input is named rather than what it made the
+    backend raise."""
+    chk.start()
+    try:
+        out = fn(*args, **kwargs)
+    except Exception:
+        chk.settle()
+        raise
+    chk.settle()
+    return out
 
 
 def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
@@ -317,47 +342,54 @@ def rasterize(
             raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
     checks.float_dtypes([("means3d", means3d), ("quats", quats), ("scales", scales), ("opacities", opacities),
                          ("colors_or_sh", colors_or_sh)])
-    fused = (kernels == "v2" and sort == "global" and not leaders
-             and resolve_backend(backend, means3d.device, means3d.dtype) == "cuda")
+    device = means3d.device
+    lean_glue = lean(device)
+    on_cuda = device.type != "cpu" and backend in ("auto", "cuda") \
+        and resolve_backend(backend, device, means3d.dtype) == "cuda"
+    fused = kernels == "v2" and sort == "global" and not leaders and on_cuda
     # the fused path hands the per-Gaussian inputs to its compositing without rasterize_splats'
-    # checks: they are checked here, in the same finiteness pass (one synchronisation)
+    # checks: they are checked here, in the same finiteness pass (one synchronisation, or none
+    # with the lean glue: read after the render)
     more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
                                eq15, k_max, t_min) if fused else []
-    checks.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
-                   ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more], pos_inf_ok=("gamma",))
-    checks.non_negative("scales", scales)
+    chk = checks.InputChecks(defer=lean_glue)
+    chk.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
+                ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more], pos_inf_ok=("gamma",))
+    chk.non_negative("scales", scales)
     checks.image_size(camera.width, camera.height)
     if fused:
         from smgs.raster.cuda_v2 import rasterize_fused
 
-        return rasterize_fused(means3d, quats, scales, opacities, colors_or_sh, camera, alpha, beta, gamma, mode,
-                               k_max, _sh_degree(sh_degree, colors_or_sh), background, eq15, reg_values,
-                               reg_depth_scale, near_plane, eps2d, clamp_sh_colors, t_min, k_max_scope)
+        return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, colors_or_sh, camera, alpha, beta,
+                        gamma, mode, k_max, _sh_degree(sh_degree, colors_or_sh), background, eq15, reg_values,
+                        reg_depth_scale, near_plane, eps2d, clamp_sh_colors, t_min, k_max_scope)
+    _sh_degree(sh_degree, colors_or_sh)
+    # The camera packed on the host (with the centre where SH needs it) and copied over once.
+    view = to_device(host_view(camera, means3d.dtype, center=sh_degree is not None), device)
+    # Lean glue: no compaction (a culled Gaussian keeps its row and renders at opacity 0), so no
+    # host wait; on the CUDA backend's plain path only (the host paths take compacted splats).
+    dense = lean_glue and on_cuda and sort == "global" and not leaders
     # The reference backend is the oracle: pure PyTorch throughout, so its projection is too.
     proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
-                             fused=False if backend == "reference" else None)
+                             fused=False if backend == "reference" else None, view=view, dense=dense)
     ids = proj.ids
+    pick = (lambda t: t) if dense else (lambda t: None if t is None else t[ids])
     if sh_degree is None:
-        if colors_or_sh.dim() != 2:
-            raise ValueError("colors_or_sh without sh_degree must be [N,C] colours")
-        colors = colors_or_sh[ids]
+        colors = pick(colors_or_sh)
     else:
-        if colors_or_sh.dim() != 3:
-            raise ValueError("colors_or_sh with sh_degree must be [N,K,C] SH coefficients")
-        center = camera.center.to(means3d.device, means3d.dtype)
-        dirs = means3d[ids] - center
+        dirs = pick(means3d) - view[VIEW_FLOATS:]
         dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        colors = eval_sh(sh_degree, colors_or_sh[ids], dirs) + 0.5
+        colors = eval_sh(sh_degree, pick(colors_or_sh), dirs) + 0.5
         if clamp_sh_colors:
             colors = colors.clamp_min(0.0)
-    pick = (lambda t: None if t is None else t[ids])
+    # a culled row of the dense projection reaches no pixel at opacity 0 (every backend skips a
+    # splat under 1/255), so it renders as if absent
+    opac = opacities * proj.visible if dense else opacities[ids]
     means2d = proj.means2d
     rd = ray_depth(means3d[ids], quats[ids], scales[ids], camera) if sort == "per_pixel" else None
-    out = rasterize_splats(means2d, proj.conics, opacities[ids], colors, proj.depths,
-                           pick(alpha), pick(beta), pick(gamma), camera.width, camera.height,
-                           mode=mode, k_max=k_max, background=background, backend=backend, eq15=eq15,
-                           reg_values=pick(reg_values), reg_depth_scale=reg_depth_scale, t_min=t_min,
-                           ray_depth=rd, leaders=leaders, k_max_scope=k_max_scope)
+    out = _rasterize_splats(means2d, proj.conics, opac, colors, proj.depths, pick(alpha), pick(beta), pick(gamma),
+                            camera.width, camera.height, mode, k_max, background, backend, eq15, pick(reg_values),
+                            reg_depth_scale, t_min, rd, leaders, k_max_scope, cuda_kernels, chk)
     if out.leaders is not None:   # projected index -> the caller's index
         out.leaders = torch.where(out.leaders >= 0, ids[out.leaders.clamp_min(0)], out.leaders)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)

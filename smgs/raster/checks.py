@@ -6,8 +6,10 @@ non-finite camera matrix, a non-floating or mixed dtype, and an image size that 
 integer up to ``MAX_IMAGE_SIDE`` are refused with a ValueError/TypeError that names the input and
 how many entries are bad. γ = +inf is valid (a hard depth decay; the stiff-case battery renders it).
 
-Cost: one stacked sum per call and one host synchronisation; a non-finite sum (NaN/inf anywhere,
-or an overflow of finite values) then counts the bad entries per tensor to decide and to name them.
+Cost: one stacked sum per call and device and one host synchronisation per device; a non-finite
+sum (NaN/inf anywhere, or an overflow of finite values) then counts the bad entries per tensor to
+decide and to name them. ``InputChecks`` with ``defer`` (the lean GPU glue) keeps the sums of GPU
+tensors on the GPU and reads them after the render, with the render's own wait.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from __future__ import annotations
 import operator
 
 import torch
+
+from smgs.raster.device_glue import Event, to_host_async
 
 MAX_IMAGE_SIDE = 16384
 """The largest width or height rendered (a 16384² RGB float32 image is 3 GiB with its buffers);
@@ -82,3 +86,59 @@ def non_negative(name: str, t: torch.Tensor) -> None:
     if t.numel() and bool((t.detach() < 0).any()):
         raise ValueError(f"{name} has {int((t.detach() < 0).sum())} negative value(s); scales are activated "
                          "(positive) standard deviations, e.g. exp(log_scales)")
+
+
+class InputChecks:
+    """The finiteness and sign checks of one render call. Without ``defer`` each check decides at
+    once (``finite``, ``non_negative``). With ``defer``, checks of tensors off the CPU become flags
+    on their device: ``start`` copies them to the host without waiting, just before the backend
+    runs, and ``settle`` (after it, or when it raised) reads them; a raised flag re-runs the exact
+    checks, which name the input. So a bad input still raises the same error, after the render
+    instead of before it (a non-finite splat only ever widens its tile box to the whole image)."""
+
+    def __init__(self, defer: bool = False) -> None:
+        self.defer = defer
+        self._flags: list[torch.Tensor] = []
+        self._exact: list = []          # what re-runs when a flag is raised
+        self._host: torch.Tensor | None = None
+        self._event: Event | None = None
+
+    def finite(self, named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = ()) -> None:
+        present = [(n, t) for n, t in named if t is not None and t.numel()]
+        if not self.defer:
+            finite(present, pos_inf_ok)
+            return
+        finite([(n, t) for n, t in present if t.device.type == "cpu"], pos_inf_ok)   # decided at once
+        on_device = [(n, t.detach()) for n, t in present if t.device.type != "cpu"]
+        if on_device:
+            sums = torch.stack([t.sum().to(torch.float64) for _, t in on_device])
+            self._flags.append(~torch.isfinite(sums).all())
+            self._exact.append(lambda: finite(on_device, pos_inf_ok))
+
+    def non_negative(self, name: str, t: torch.Tensor) -> None:
+        if not self.defer or t.device.type == "cpu":
+            non_negative(name, t)
+        elif t.numel():
+            t = t.detach()
+            self._flags.append((t < 0).any())
+            self._exact.append(lambda: non_negative(name, t))
+
+    def start(self) -> None:
+        """Copy the flags to the host without waiting (call just before the backend runs)."""
+        if self._flags and self._host is None:
+            flags = self._flags[0] if len(self._flags) == 1 else torch.stack(self._flags).any()
+            self._host, self._event = to_host_async(flags)
+
+    def settle(self) -> None:
+        """Raise for a bad input; waits only where nothing has waited past the flags' copy yet."""
+        if not self._flags:
+            return
+        self.start()
+        if self._event is not None and not self._event.query():
+            self._event.synchronize()
+        raised = bool(self._host)
+        self._flags, self._host, self._event = [], None, None
+        if raised:
+            for exact in self._exact:
+                exact()
+        self._exact = []

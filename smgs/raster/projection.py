@@ -22,6 +22,7 @@ from torch.autograd.function import once_differentiable
 from smgs.camera import Camera
 from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension, use_cpu_kernel
+from smgs.raster.device_glue import to_device
 
 _CSRC = Path(__file__).parent / "csrc"
 
@@ -35,6 +36,9 @@ class Projected:
     conics: torch.Tensor    # [M, 3] (a, b, c) of the inverse dilated 2D covariance
     depths: torch.Tensor    # [M] camera-space z
     radii: torch.Tensor     # [M, 2] half extents of the 3σ box in pixels (no gradient)
+    # dense projection (``project_gaussians(dense=True)``): M = N, ids = arange(N), and this [N] bool
+    # marks the rows that survived culling (the others have radius 0 and render at opacity 0)
+    visible: torch.Tensor | None = None
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -80,16 +84,106 @@ class _View:
     size: torch.Tensor      # [2] (width, height)
 
 
-def _view(camera: Camera, dtype: torch.dtype, device: torch.device) -> _View:
-    V = camera.viewmat.to(device, dtype)
-    Kc = camera.K.to(device, dtype)
+VIEW_FLOATS = 22
+"""Length of the packed view: rw (9), tw (3), f, c, lo, hi, size (2 each); the camera centre (3)
+follows where asked for (``host_view(..., center=True)``)."""
+
+
+def host_view(camera: Camera, dtype: torch.dtype, center: bool = False) -> torch.Tensor:
+    """The camera quantities the projection (and, with ``center``, the SH view directions) use, as
+    one host tensor in the Gaussians' dtype: [22], or [25] with the camera centre.
+
+    Computed on the host from the camera's own tensors (a camera kept on the CPU, as the trainer's,
+    costs no device copy and no wait), with the float arithmetic the projection used to do on the
+    device (same IEEE operations, so the same bits)."""
+    cpu = torch.device("cpu")
+    V = camera.viewmat.to(cpu, dtype)
+    Kc = camera.K.to(cpu, dtype)
     f = torch.stack([Kc[0, 0], Kc[1, 1]])
     c = torch.stack([Kc[0, 2], Kc[1, 2]])
-    size = torch.tensor([camera.width, camera.height], dtype=dtype, device=device)
+    size = torch.tensor([camera.width, camera.height], dtype=dtype)
     # The visible range of x/z widened by 30% of the half field of view each side (3DGS's
     # 1.3·tan(fov/2) for a centred principal point).
     m = 0.15 * size / f
-    return _View(V[:3, :3], V[:3, 3], f, c, -c / f - m, (size - c) / f + m, size)
+    parts = [V[:3, :3].reshape(-1), V[:3, 3], f, c, -c / f - m, (size - c) / f + m, size]
+    if center:
+        parts.append(camera.center.to(cpu, dtype))
+    return torch.cat(parts)
+
+
+def _view_of(packed: torch.Tensor) -> _View:
+    """The ``_View`` of a packed view (``host_view``), as slices of it on its device."""
+    return _View(packed[:9].reshape(3, 3), packed[9:12], packed[12:14], packed[14:16], packed[16:18],
+                 packed[18:20], packed[20:22])
+
+
+def _view(camera: Camera, dtype: torch.dtype, device: torch.device) -> _View:
+    return _view_of(to_device(host_view(camera, dtype), torch.device(device)))
+
+
+def _packed_view(view: _View) -> torch.Tensor:
+    """``view`` as the flat [22] the compiled projection reads: rw, tw, f, c, lo, hi, size."""
+    return torch.cat([view.rw.reshape(-1), view.tw, view.f, view.c, view.lo, view.hi, view.size])
+
+
+def _ewa(pc: torch.Tensor, z: torch.Tensor, quats, scales, view: _View, eps2d: float):
+    """The per-Gaussian forward math of ``_Project`` on camera-space points ``pc`` [M,3] whose depth
+    column is ``z`` [M,1]: (means2d, conics, depths, radii), then the intermediates its backward reads."""
+    r = pc[:, :2] / z
+    u = torch.minimum(torch.maximum(r, view.lo), view.hi)
+    ab = view.f / z                                                    # (fx/z, fy/z)
+    D = view.rw[:2] - u[:, :, None] * view.rw[2]                       # [M, 2, 3]
+    T = D * ab[:, :, None]
+    qn = quats.norm(dim=-1, keepdim=True)
+    q = quats / qn
+    lin, const = _rot_linear(q.dtype, q.device)
+    R = torch.addmm(const, (q[:, :, None] * q[:, None, :]).reshape(-1, 16), lin).reshape(-1, 3, 3)
+    TR = T @ R
+    P = TR * scales[:, None, :]
+    cov = P @ P.transpose(1, 2)
+    sxx = cov[:, 0, 0] + eps2d
+    syy = cov[:, 1, 1] + eps2d
+    sxy = cov[:, 0, 1]
+    det_raw = sxx * syy - sxy * sxy
+    det = det_raw.clamp_min(1e-12)
+    conics = torch.stack([syy, -sxy, sxx], dim=-1) / det[:, None]
+    means2d = torch.addcmul(view.c, view.f, r)
+    radii = K.SIGMA_EXTENT * torch.stack([sxx, syy], dim=-1).sqrt()
+    return (means2d, conics, z[:, 0], radii), (z, r, u, ab, D, T, q, qn, R, TR, scales, sxx, syy, sxy, det_raw, det)
+
+
+def _ewa_backward(saved, view: _View, g_m2d, g_con, g_depth):
+    """(g_means, g_quats, g_scales) of the rows ``_ewa`` computed."""
+    z, r, u, ab, D, T, q, qn, R, TR, scales, sxx, syy, sxy, det_raw, det = saved
+    # conic = (syy, −sxy, sxx) / det, det = max(sxx·syy − sxy², 1e-12) (clamp: torch's mask)
+    inv = 1.0 / det
+    ga, gb, gc = g_con.unbind(1)
+    g_det = -(ga * syy - gb * sxy + gc * sxx) * inv * inv * (det_raw >= 1e-12)
+    g_sxx = gc * inv + g_det * syy
+    g_syy = ga * inv + g_det * sxx
+    g_sxy = -gb * inv - 2 * sxy * g_det
+    # Σ2D = P Pᵀ, sxy read from the upper triangle: dL/dP = (G + Gᵀ)·P
+    G = torch.stack([2 * g_sxx, g_sxy, g_sxy, 2 * g_syy], dim=1).reshape(-1, 2, 2)
+    s3 = scales[:, None, :]
+    g_P = G @ (TR * s3)
+    g_TR = g_P * s3
+    g_s = (g_P * TR).sum(1)
+    g_T = g_TR @ R.transpose(1, 2)
+    g_R = T.transpose(1, 2) @ g_TR
+    # T = diag(ab)·D, D = Rw[:2] − u ⊗ Rw[2]; ab = f / z
+    g_ab = (g_T * D).sum(2)
+    g_u = -(g_T @ view.rw[2]) * ab
+    # u = clamp(r) passes the gradient inside the limits, bounds included (torch.clamp);
+    # means2d = f·r + c; r = p_xy / z; depth = z
+    g_r = g_u * ((r >= view.lo) & (r <= view.hi)) + g_m2d * view.f
+    g_z = g_depth[:, None] - ((g_r * r).sum(1, keepdim=True) + (g_ab * ab).sum(1, keepdim=True)) / z
+    g_means = torch.cat([g_r / z, g_z], 1) @ view.rw
+    # vec(R) = vec(q qᵀ)·L + c; q = quats / |quats|
+    lin, _ = _rot_linear(q.dtype, q.device)
+    g_qq = (g_R.reshape(-1, 9) @ lin.T).reshape(-1, 4, 4)
+    g_q = ((g_qq + g_qq.transpose(1, 2)) @ q[:, :, None])[:, :, 0]
+    g_quats = (g_q - q * (q * g_q).sum(1, keepdim=True)) / qn
+    return g_means, g_quats, g_s
 
 
 class _Project(torch.autograd.Function):
@@ -107,30 +201,9 @@ class _Project(torch.autograd.Function):
         near = torch.nonzero(pc[:, 2] > near_plane).squeeze(1)
         if near.shape[0] != n:
             pc, quats, scales = pc[near], quats[near], scales[near]
-        z = pc[:, 2:3]
-        r = pc[:, :2] / z
-        u = torch.minimum(torch.maximum(r, view.lo), view.hi)
-        ab = view.f / z                                                    # (fx/z, fy/z)
-        D = view.rw[:2] - u[:, :, None] * view.rw[2]                       # [M, 2, 3]
-        T = D * ab[:, :, None]
-        qn = quats.norm(dim=-1, keepdim=True)
-        q = quats / qn
-        lin, const = _rot_linear(q.dtype, q.device)
-        R = torch.addmm(const, (q[:, :, None] * q[:, None, :]).reshape(-1, 16), lin).reshape(-1, 3, 3)
-        TR = T @ R
-        P = TR * scales[:, None, :]
-        cov = P @ P.transpose(1, 2)
-        sxx = cov[:, 0, 0] + eps2d
-        syy = cov[:, 1, 1] + eps2d
-        sxy = cov[:, 0, 1]
-        det_raw = sxx * syy - sxy * sxy
-        det = det_raw.clamp_min(1e-12)
-        conics = torch.stack([syy, -sxy, sxx], dim=-1) / det[:, None]
-        means2d = torch.addcmul(view.c, view.f, r)
-        radii = K.SIGMA_EXTENT * torch.stack([sxx, syy], dim=-1).sqrt()
+        (means2d, conics, depths, radii), saved = _ewa(pc, pc[:, 2:3], quats, scales, view, eps2d)
         on = ((means2d + radii > 0) & (means2d - radii < view.size)).all(dim=1)
         sel = torch.nonzero(on).squeeze(1)
-        depths = z[:, 0]
         m = near.shape[0]
         ids = near
         if sel.shape[0] != m:
@@ -139,51 +212,64 @@ class _Project(torch.autograd.Function):
         ctx.view = view
         ctx.n = n
         ctx.sel = None if sel.shape[0] == m else sel
-        ctx.save_for_backward(near, z, r, u, ab, D, T, q, qn, R, TR, scales, sxx, syy, sxy, det_raw, det)
+        ctx.save_for_backward(near, *saved)
         return ids, means2d, conics, depths, radii
 
     @staticmethod
     def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii):  # type: ignore[override]
-        near, z, r, u, ab, D, T, q, qn, R, TR, scales, sxx, syy, sxy, det_raw, det = ctx.saved_tensors
+        near, *saved = ctx.saved_tensors
         view, sel, n = ctx.view, ctx.sel, ctx.n
-        m = z.shape[0]
+        m = saved[0].shape[0]
         if sel is not None:       # back to the rows of the near-plane survivors
             g_m2d = g_m2d.new_zeros(m, 2).index_copy_(0, sel, g_m2d)
             g_con = g_con.new_zeros(m, 3).index_copy_(0, sel, g_con)
             g_depth = g_depth.new_zeros(m).index_copy_(0, sel, g_depth)
-        # conic = (syy, −sxy, sxx) / det, det = max(sxx·syy − sxy², 1e-12) (clamp: torch's mask)
-        inv = 1.0 / det
-        ga, gb, gc = g_con.unbind(1)
-        g_det = -(ga * syy - gb * sxy + gc * sxx) * inv * inv * (det_raw >= 1e-12)
-        g_sxx = gc * inv + g_det * syy
-        g_syy = ga * inv + g_det * sxx
-        g_sxy = -gb * inv - 2 * sxy * g_det
-        # Σ2D = P Pᵀ, sxy read from the upper triangle: dL/dP = (G + Gᵀ)·P
-        G = torch.stack([2 * g_sxx, g_sxy, g_sxy, 2 * g_syy], dim=1).reshape(-1, 2, 2)
-        s3 = scales[:, None, :]
-        g_P = G @ (TR * s3)
-        g_TR = g_P * s3
-        g_s = (g_P * TR).sum(1)
-        g_T = g_TR @ R.transpose(1, 2)
-        g_R = T.transpose(1, 2) @ g_TR
-        # T = diag(ab)·D, D = Rw[:2] − u ⊗ Rw[2]; ab = f / z
-        g_ab = (g_T * D).sum(2)
-        g_u = -(g_T @ view.rw[2]) * ab
-        # u = clamp(r) passes the gradient inside the limits, bounds included (torch.clamp);
-        # means2d = f·r + c; r = p_xy / z; depth = z
-        g_r = g_u * ((r >= view.lo) & (r <= view.hi)) + g_m2d * view.f
-        g_z = g_depth[:, None] - ((g_r * r).sum(1, keepdim=True) + (g_ab * ab).sum(1, keepdim=True)) / z
-        g_means = torch.cat([g_r / z, g_z], 1) @ view.rw
-        # vec(R) = vec(q qᵀ)·L + c; q = quats / |quats|
-        lin, _ = _rot_linear(q.dtype, q.device)
-        g_qq = (g_R.reshape(-1, 9) @ lin.T).reshape(-1, 4, 4)
-        g_q = ((g_qq + g_qq.transpose(1, 2)) @ q[:, :, None])[:, :, 0]
-        g_quats = (g_q - q * (q * g_q).sum(1, keepdim=True)) / qn
+        g_means, g_quats, g_s = _ewa_backward(saved, view, g_m2d, g_con, g_depth)
         if m != n:                # back to all Gaussians (those behind the near plane get 0)
             g_means = g_means.new_zeros(n, 3).index_copy_(0, near, g_means)
             g_quats = g_quats.new_zeros(n, 4).index_copy_(0, near, g_quats)
             g_s = g_s.new_zeros(n, 3).index_copy_(0, near, g_s)
         return g_means, g_quats, g_s, None, None, None
+
+
+@functools.lru_cache(maxsize=8)
+def _unit_conic(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    return to_device(torch.tensor([1.0, 0.0, 1.0], dtype=dtype), device)
+
+
+class _ProjectDense(torch.autograd.Function):
+    """``_Project`` without compaction: every Gaussian keeps its row, so nothing waits for a count of
+    survivors (the lean glue, ``smgs.raster.device_glue``). A culled row (behind the near plane, or
+    its 3σ box off the image) gets radius 0, ``visible`` False and placeholder values (mean 0, the
+    unit conic, depth 0) that the caller renders at opacity 0, so it reaches no pixel, as if absent;
+    its gradients are 0. The kept rows run ``_Project``'s operations on the same values."""
+
+    @staticmethod
+    def forward(ctx, means3d, quats, scales, view: _View, near_plane: float, eps2d: float):  # type: ignore[override]
+        n = means3d.shape[0]
+        pc = torch.addmm(view.tw, means3d, view.rw.T)
+        near = pc[:, 2:3] > near_plane
+        z = torch.where(near, pc[:, 2:3], 1.0)     # behind the near plane: any finite depth, unused
+        (means2d, conics, depths, radii), saved = _ewa(pc, z, quats, scales, view, eps2d)
+        on = ((means2d + radii > 0) & (means2d - radii < view.size)).all(dim=1, keepdim=True) & near
+        means2d = torch.where(on, means2d, 0.0)
+        conics = torch.where(on, conics, _unit_conic(conics.dtype, conics.device))
+        depths = torch.where(on[:, 0], depths, 0.0)
+        radii = torch.where(on, radii, 0.0)
+        ids = torch.arange(n, device=means3d.device)
+        visible = on[:, 0]
+        ctx.mark_non_differentiable(ids, radii, visible)
+        ctx.view = view
+        ctx.save_for_backward(on, *saved)
+        return ids, means2d, conics, depths, radii, visible
+
+    @staticmethod
+    def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii, _g_visible):  # type: ignore[override]
+        on, *saved = ctx.saved_tensors
+        grads = _ewa_backward(saved, ctx.view, g_m2d, g_con, g_depth)
+        # a culled row's intermediates may be anything (a zero quaternion, a placeholder depth):
+        # its gradients are 0 whatever they hold
+        return tuple(torch.where(on, g, 0.0) for g in grads) + (None, None, None)
 
 
 _JIT = cpu_extension("smgs_projection_cpu", [_CSRC / "projection_cpu.cpp"], "projection kernel")
@@ -192,11 +278,6 @@ _JIT = cpu_extension("smgs_projection_cpu", [_CSRC / "projection_cpu.cpp"], "pro
 def fused_available() -> bool:
     """Whether the compiled CPU projection can be used here (builds it on first call; a failed build raises ``BuildError``)."""
     return _JIT.is_available()
-
-
-def _packed_view(view: _View) -> torch.Tensor:
-    """``view`` as the flat float32 [22] the compiled projection reads: rw, tw, f, c, lo, hi, size."""
-    return torch.cat([view.rw.reshape(-1), view.tw, view.f, view.c, view.lo, view.hi, view.size])
 
 
 class _ProjectCPU(torch.autograd.Function):
@@ -224,7 +305,8 @@ class _ProjectCPU(torch.autograd.Function):
 
 def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                       camera: Camera, near_plane: float = K.NEAR_PLANE,
-                      eps2d: float = K.EPS2D, fused: bool | None = None) -> Projected:
+                      eps2d: float = K.EPS2D, fused: bool | None = None,
+                      view: torch.Tensor | None = None, dense: bool = False) -> Projected:
     """EWA splatting (Zwicker et al.; 3DGS): Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I.
 
     Culls Gaussians in front of the near plane and those whose 3σ box misses the image (the box
@@ -234,12 +316,22 @@ def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.
 
     ``fused``: None uses the compiled CPU pass wherever it applies (float32 CPU tensors, the
     extension available), True requires it (RuntimeError naming why not), False always uses the
-    PyTorch path.
+    PyTorch path. ``view``: the camera already packed on the Gaussians' device (``host_view``, then
+    ``to_device``; ``rasterize`` packs the SH centre with it), else packed here. ``dense``: keep
+    every Gaussian's row (``Projected.visible`` marks the survivors; the PyTorch path, for the lean
+    glue of ``smgs.raster.device_glue``): no host synchronisation.
     """
-    view = _view(camera, means3d.dtype, means3d.device)
+    if view is None:
+        view = to_device(host_view(camera, means3d.dtype), means3d.device)
+    if dense:
+        ids, means2d, conics, depths, radii, visible = _ProjectDense.apply(
+            means3d, quats, scales, _view_of(view), float(near_plane), float(eps2d))
+        return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii, visible=visible)
     if use_cpu_kernel(_JIT, fused, (means3d, quats, scales), "means3d, quats, scales"):
-        out = _ProjectCPU.apply(means3d, quats, scales, _packed_view(view), float(near_plane), float(eps2d))
+        packed = view[:VIEW_FLOATS]
+        out = _ProjectCPU.apply(means3d, quats, scales, packed if packed.is_contiguous() else packed.contiguous(),
+                                float(near_plane), float(eps2d))
     else:
-        out = _Project.apply(means3d, quats, scales, view, float(near_plane), float(eps2d))
+        out = _Project.apply(means3d, quats, scales, _view_of(view), float(near_plane), float(eps2d))
     ids, means2d, conics, depths, radii = out
     return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii)

@@ -29,7 +29,6 @@ def scope_is_patch(scope: str) -> bool:
     return scope == "patch"
 
 
-@dataclass
 class RenderStats:
     """Per-render counters (no gradients).
 
@@ -43,13 +42,53 @@ class RenderStats:
     scope: the k_max scope rendered with (docs/kmax-scope.md).
     list_end: [H, W] in patch scope (None in pixel scope): 1 + the furthest position in its tile's
         list that each pixel composited (0 where none).
+
+    Lazy: a kernel hands its counters over as they are (int32 maps, the pair count as a 1-element
+    tensor on its device); they become ``long`` tensors and an ``int`` when first read, so a render
+    whose caller never reads them pays no conversion and, on a GPU, no wait for the pair count.
     """
 
-    n_contrib: torch.Tensor
-    pairs_evaluated: int
-    k_max: int
-    scope: str = "pixel"
-    list_end: torch.Tensor | None = None
+    def __init__(self, n_contrib: torch.Tensor, pairs_evaluated: int | torch.Tensor, k_max: int,
+                 scope: str = "pixel", list_end: torch.Tensor | None = None) -> None:
+        self._n_contrib = n_contrib
+        self._pairs = pairs_evaluated
+        self.k_max = k_max
+        self.scope = scope
+        self._list_end = list_end
+
+    @property
+    def n_contrib(self) -> torch.Tensor:
+        if self._n_contrib.dtype != torch.long:
+            self._n_contrib = self._n_contrib.long()
+        return self._n_contrib
+
+    @n_contrib.setter
+    def n_contrib(self, value: torch.Tensor) -> None:
+        self._n_contrib = value
+
+    @property
+    def pairs_evaluated(self) -> int:
+        if isinstance(self._pairs, torch.Tensor):
+            self._pairs = int(self._pairs.reshape(-1)[0].item())
+        return self._pairs
+
+    @pairs_evaluated.setter
+    def pairs_evaluated(self, value: int) -> None:
+        self._pairs = value
+
+    @property
+    def list_end(self) -> torch.Tensor | None:
+        if self._list_end is not None and self._list_end.dtype != torch.long:
+            self._list_end = self._list_end.long()
+        return self._list_end
+
+    @list_end.setter
+    def list_end(self, value: torch.Tensor | None) -> None:
+        self._list_end = value
+
+    def __repr__(self) -> str:
+        return (f"RenderStats(n_contrib={tuple(self._n_contrib.shape)}, pairs_evaluated={self._pairs!r}, "
+                f"k_max={self.k_max}, scope={self.scope!r})")
 
     @property
     def contributions(self) -> int:

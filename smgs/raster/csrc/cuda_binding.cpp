@@ -179,9 +179,10 @@ std::vector<at::Tensor> backward_torch(at::Tensor g_rgb, at::Tensor g_alpha, at:
   Scene sc = make_scene(pk, ranges, tile_list, background, W, H, nch, R, use_gef, use_softmax, k_max, solved,
                         reg_scale, patch);
   at::Tensor grad = at::zeros({n, sc.S}, f32);
-  // the head scratch needs only as many entries as the most crowded pixel composited (synchronises;
-  // in patch scope a pixel's head steps are at most min(k_max, its count) too)
-  const int64_t most = n_contrib.numel() ? n_contrib.max().item<int64_t>() : 0;
+  // the head scratch needs only as many entries as the most crowded pixel composited (synchronises,
+  // so only in the softmax modes, the only ones with a head; in patch scope a pixel's head steps are
+  // at most min(k_max, its count) too)
+  const int64_t most = use_softmax && n_contrib.numel() ? n_contrib.max().item<int64_t>() : 0;
   const int kmax_eff = use_softmax ? int(std::min<int64_t>(std::max<int64_t>(k_max, 0), most)) : 0;
   const int64_t tiles = int64_t(sc.tiles_x) * sc.tiles_y;
   const int64_t per_slot = int64_t(kmax_eff) * int64_t(head_entry_floats(nch)) * int64_t(sizeof(float));
@@ -198,7 +199,9 @@ std::vector<at::Tensor> backward_torch(at::Tensor g_rgb, at::Tensor g_alpha, at:
   BwdWork work{grad.data_ptr<float>(), head.numel() ? head.data_ptr<float>() : nullptr, slots, kmax_eff,
                chan.numel() ? chan.data_ptr<float>() : nullptr};
   if (n) check(backward(sc, in, work, st), "backward compositing");
-  auto cols = [&](int c0, int c1) { return grad.slice(1, c0, c1).contiguous(); };
+  // per-input views of the packed rows (strided; autograd and the projection's backward read them
+  // as they are, so no copy per input)
+  auto cols = [&](int c0, int c1) { return grad.slice(1, c0, c1); };
   return {cols(P_MX, P_MY + 1),
           cols(P_CA, P_CC + 1),
           cols(P_O, P_O + 1).reshape({n}),
