@@ -149,3 +149,24 @@ def test_time_curves_show_the_seed_band(three):
     html = (three[0].parent / "report.html").read_text()
     assert html.count('"fill":"toself"') == 4    # 2 methods × 2 scenes
     assert "a shaded band from the lowest to the highest seed" in three[1]
+
+
+def test_table4_pairs_each_method_with_3dgs_and_flags_the_opposite_sign():
+    from reports.paper import load_paper
+    from reports.tables import Context, table4
+
+    # bicycle, 3 seeds; paper: StopThePop − 3D GS FLIP = 0.028 − 0.032 = −0.004 (StopThePop ahead)
+    flips = {"3dgs": (0.030, 0.031, 0.032), "stopthepop": (0.034, 0.036, 0.035), "softmax_gs": (0.030, 0.032, 0.031)}
+    runs = [RunResult(method=m, dataset="mipnerf360", scene="bicycle", budget="full", seed=s, metrics={"psnr": 25.0},
+                      consistency={"psnr": 25.0, "mse": 0.017, "flip": f[s], "estimator": "geometric"})
+            for m, f in flips.items() for s in range(3)]
+    md = table4(runs, Context.of(runs, load_paper())).markdown()
+    sub = md[md.index("### Paired"):]
+    stp = row(sub, "StopThePop − 3D GS")
+    # d = 0.004, 0.005, 0.003: mean 0.004, sd 0.001, half width 4.302653 · 0.001 / √3 = 0.002484
+    assert "+0.004 [+0.002, +0.006]✱ | -0.004" in stp
+    assert "other side of the paper's difference" in footnote(sub, stp, 7)
+    sg = row(sub, "Softmax-GS − 3D GS")
+    # d = 0, 0.001, −0.001: mean 0, no ✱; the paper's −0.001 sits beside it without a footnote
+    assert "+0.000 [-0.002, +0.002] | -0.001 |" in sg
+    assert "| 0, 1, 2 |" in sg
