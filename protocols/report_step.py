@@ -15,6 +15,10 @@ from pathlib import Path
 _ROOT = Path(__file__).resolve().parents[1]
 
 
+class ReportFailed(RuntimeError):
+    """The report builder exited with an error (printed by it on stderr); the runs are unaffected."""
+
+
 def build_report(runs_dir: Path | str) -> Path:
     """Build the report of every run below ``runs_dir``; returns the path of report.md."""
     env = dict(os.environ)
@@ -23,8 +27,8 @@ def build_report(runs_dir: Path | str) -> Path:
     done = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, text=True)
     lines = [ln for ln in done.stdout.splitlines() if ln.startswith("report: ")]
     if done.returncode != 0 or not lines:
-        raise RuntimeError(f"the report step failed (exit status {done.returncode}): {' '.join(cmd)}\n"
-                           f"{done.stdout}(its error is printed above)")
+        raise ReportFailed(f"the report step failed (exit status {done.returncode}; its error is printed above): "
+                           f"{' '.join(cmd)}" + (f"\n{done.stdout}" if done.stdout.strip() else ""))
     for ln in done.stdout.splitlines():  # the builder's own notes, without its final path line
         if not ln.startswith("report: "):
             print(ln, flush=True)

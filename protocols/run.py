@@ -222,7 +222,14 @@ def failure_message(summaries: list[dict]) -> str | None:
 
 @hydra.main(config_path="../configs", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    message = failure_message(_run(cfg, list(HydraConfig.get().overrides.task)))
+    from protocols.report_step import ReportFailed
+
+    try:
+        summaries = _run(cfg, list(HydraConfig.get().overrides.task))
+    except ReportFailed as e:   # the runs are recorded; the builder has printed its own error
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
+    message = failure_message(summaries)
     if message:  # a script or CI job driving the harness must see it
         print(f"error: {message}", file=sys.stderr, flush=True)
         raise SystemExit(1)

@@ -2,8 +2,10 @@
 
 Reads every results.json below the RUNS_DIRs (several: one grid run apart, merged as one) and writes, into DIR (default RUNS_DIR/report):
 ``report.md``, ``tables/<table>.csv`` (one per table, long format), ``tables/runs.csv`` (every run),
-``plots/*.png`` and ``report.html`` (the same report as one interactive page, ``reports/html/``). Every file is written atomically (temp file + rename); files of a previous build
-that this build does not produce are removed (only those the previous build listed in its manifest).
+``plots/*.png`` and ``report.html`` (the same report as one interactive page, ``reports/html/``). The report is
+built in a temporary folder beside DIR and switched in whole at the end, so a failed build leaves the previous
+report as it was; files of a previous build that this build does not produce are removed (only those the
+previous build listed in its manifest), other files in DIR are kept.
 """
 
 from __future__ import annotations
@@ -13,14 +15,17 @@ import csv
 import io
 import json
 import math
+import os
+import shutil
 import sys
+import tempfile
 import traceback
 from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
 
 from protocols.results import RunResult
-from smgs.io.atomic import atomic_write_bytes, atomic_write_text
+from smgs.io.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
 from reports.diagnostics import diagnostics_section
 from reports.environment import environment_markdown
 from reports.html import html_report
@@ -238,21 +243,54 @@ def _cell(v: object) -> object:
 
 
 def _write(out: Path, files: dict[str, bytes], md: str) -> None:
-    """Tables and plots first, report.md last; then remove what the previous build wrote and this one
-    did not."""
-    out.mkdir(parents=True, exist_ok=True)
-    old: list[str] = []
+    """The whole report is written into a new folder beside ``out`` and switched in for the old one
+    at the end (``smgs.io.atomic.replace_dir``): a build that fails (a full disk, an error) leaves
+    the previous report as it was, never new tables beside an old report.md. Files of the old
+    folder that the report does not write (the user's own) are carried over; those of our own that
+    the previous build listed in its manifest and this one does not produce are not."""
+    out = out.resolve() if out.is_symlink() else out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
     try:
-        old = json.loads((out / MANIFEST).read_text())
+        os.chmod(tmp, 0o777 & ~umask())   # mkdtemp makes 0700; the report folder follows the umask
+        for rel, data in files.items():
+            atomic_write_bytes(tmp / rel, data)
+        atomic_write_text(tmp / REPORT, md)
+        atomic_write_text(tmp / MANIFEST, json.dumps(sorted(files)))
+        if out.is_dir():
+            _carry_over(out, tmp, set(files))
+        replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _carry_over(old: Path, new: Path, written: set[str]) -> None:
+    """Link (or copy) into ``new`` every file of ``old`` that is not the report's: neither one this
+    build wrote nor a table or plot of ours that the previous build's manifest lists."""
+    try:
+        listed = json.loads((old / MANIFEST).read_text())
     except (OSError, ValueError):
-        pass
-    for rel, data in files.items():
-        atomic_write_bytes(out / rel, data)
-    atomic_write_text(out / REPORT, md)
-    atomic_write_text(out / MANIFEST, json.dumps(sorted(files)))
-    for rel in set(map(str, old if isinstance(old, list) else [])) - set(files):
-        if _ours(out, rel):
-            (out / rel).unlink()
+        listed = []
+    stale = {str(rel) for rel in (listed if isinstance(listed, list) else []) if _ours(old, str(rel))}
+    ours = written | stale | {REPORT, HTML, MANIFEST}
+    for dirpath, dirnames, filenames in os.walk(old):
+        here = Path(dirpath)
+        rel_dir = here.relative_to(old)
+        (new / rel_dir).mkdir(exist_ok=True)
+        for name in filenames + [d for d in dirnames if (here / d).is_symlink()]:
+            rel = (rel_dir / name).as_posix()
+            src, dst = here / name, new / rel_dir / name
+            if rel in ours or dst.exists() or dst.is_symlink() or name.startswith(f".{REPORT}.") or \
+                    name.startswith(f".{HTML}."):
+                continue
+            if src.is_symlink():
+                os.symlink(os.readlink(src), dst)
+                continue
+            try:
+                os.link(src, dst)
+            except OSError:
+                shutil.copy2(src, dst)
 
 
 def _ours(out: Path, rel: str) -> bool:
@@ -278,7 +316,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {d} is not a directory", file=sys.stderr)
             return 2
     stability = "skipped (--no-stability)" if args.no_stability else None
-    path = build_report(args.runs_dir[0], args.out, stability=stability, also=args.runs_dir[1:])
+    try:
+        path = build_report(args.runs_dir[0], args.out, stability=stability, also=args.runs_dir[1:])
+    except OSError as e:   # a full disk, a folder without write permission: one line, naming the path
+        out = args.out if args.out is not None else args.runs_dir[0] / "report"
+        print(f"error: the report was not written ({e}); the previous report in {out}, if any, is left as it "
+              "was", file=sys.stderr)
+        return 1
     print(f"report: {path}")
     return 0
 

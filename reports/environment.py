@@ -75,7 +75,7 @@ def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None =
     devices = sorted({r.render_device for r in runs if r.render_device})
     out = ["\n".join(lines), ""]
     if devices:
-        out.append(f"Render devices of the runs: {', '.join(devices)}.")
+        out.append(f"Render devices of the runs: {', '.join(md_text(d) for d in devices)}.")
     out.append("\"runs\" is what each results.json recorded (a value is listed with its count when runs differ); "
                "\"not recorded\" means no run stored it.")
     return "\n".join(out) + "\n"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -89,9 +89,9 @@ def load_runs(root: Path | str, *more: Path | str) -> LoadedRuns:
     kept: dict[tuple, Run] = {}
     for p in [p for r in out.roots for p in find_results(r)]:
         try:
-            run = Run(p, read_result(p))
+            run = Run(p, cut_long_strings(read_result(p), p))
         except (OSError, ValueError) as e:
-            out.unreadable.append((p, str(e)))
+            out.unreadable.append((p, one_line(str(e), MAX_TEXT)))
             continue
         key = identity(run.r)
         old = kept.get(key)
@@ -104,6 +104,30 @@ def load_runs(root: Path | str, *more: Path | str) -> LoadedRuns:
         out.duplicates.append((drop.path, keep.path))
     out.runs = list(kept.values())
     return out
+
+
+MAX_TEXT = 2000
+"""The longest recorded string a report shows (an error of megabytes, a device name gone wrong):
+longer ones are cut where the runs are read, so report.md, report.html and the CSVs all hold the
+cut text, with a note of how much was left out and where the whole is."""
+
+
+def cut_long_strings(r: RunResult, path: Path) -> RunResult:
+    """``r`` with every string of every field (nested in dicts and lists too) at most ``MAX_TEXT``
+    characters long."""
+    def cut(x):
+        if isinstance(x, str):
+            return x if len(x) <= MAX_TEXT else \
+                x[:MAX_TEXT] + f"… [{len(x) - MAX_TEXT} more characters, in {path}]"
+        if isinstance(x, dict):
+            return {k: cut(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [cut(v) for v in x]
+        return x
+
+    for f in fields(r):
+        setattr(r, f.name, cut(getattr(r, f.name)))
+    return r
 
 
 def _mtime(p: Path) -> float:

@@ -245,7 +245,7 @@ class Table:
             lines.append("| " + " | ".join(md_text(c.markdown()) for c in cells) + " |")
         out = []
         if self.title:
-            out.append(f"**{self.title}**" if not self.title.startswith("#") else self.title)
+            out.append(f"**{md_text(self.title)}**")   # titles hold recorded names (datasets, patterns)
             out.append("")
         out += lines
         foot = [f"{superscript(i + 1)} {md_text(t)}  " for i, t in enumerate(g.notes)]
@@ -391,7 +391,7 @@ class Section:
         return [self] + [s for sub in self.subsections for s in sub.all()]
 
     def markdown(self, level: int = 2, link: Callable[[str], str | None] = lambda name: None) -> str:
-        out = [f"{'#' * level} {self.title}", ""]
+        out = [f"{'#' * level} {md_text(self.title)}", ""]
         out += [md_text(p) + "\n" for p in self.intro]
         if self.empty_reason:
             out += [f"Not produced: {md_text(self.empty_reason)}", ""]

@@ -263,3 +263,43 @@ def test_a_failed_export_leaves_nothing_half_written(scene, tmp_path, monkeypatc
     with pytest.raises(PlyFormatError, match="1 NaN and 0 inf"):
         write_ply(tmp_path / "out" / "nan.ply", s)
     assert os.listdir(target.parent) == ["model.ply"]
+
+
+# ---- every error names its file and what in it -------------------------------------------------
+
+def test_a_finite_scale_whose_exp_overflows_names_the_file_and_property(scene, tmp_path):
+    good, k = _good(scene, tmp_path)
+    scales = k["log_scales"][:, 1].copy()
+    scales[4] = 200.0                    # finite in the file, inf after exp: the renderer saw an unnamed inf
+    msg = _error(_rewrite(good, tmp_path / "big.ply", values={"scale_1": scales}))
+    assert "property scale_1 has 1 value(s) above 88.72" in msg and "vertex 4: scale_1 = 200" in msg
+    with pytest.raises(PlyFormatError, match=r"big\.ply: property scale_1"):
+        GaussianSplatting.from_ply(scene, tmp_path / "big.ply", device="cpu")
+
+
+def test_an_ascii_header_claiming_10_12_vertices_is_refused_before_any_allocation(scene, tmp_path):
+    good, k = _good(scene, tmp_path, n=3)
+    write_by_hand(tmp_path / "a.ply", **k, fmt="ascii")
+    data = (tmp_path / "a.ply").read_bytes().replace(b"element vertex 3\n", b"element vertex 1000000000000\n")
+    (tmp_path / "huge.ply").write_bytes(data)
+    msg = _error(tmp_path / "huge.ply")
+    assert "declares 1000000000000 vertex rows" in msg and "as ASCII text" in msg
+
+
+def test_random_bytes_named_ply_are_not_a_ply_file(tmp_path):
+    junk = np.random.default_rng(0).bytes(4096)
+    (tmp_path / "junk.ply").write_bytes(junk)
+    assert "not a PLY file: it begins with" in _error(tmp_path / "junk.ply")
+    (tmp_path / "junk2.ply").write_bytes(b"ply\n" + junk)   # the magic, then garbage: no codec traceback
+    assert "not a readable PLY header" in _error(tmp_path / "junk2.ply")
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_a_header_claiming_fewer_vertices_than_the_data_is_refused(scene, tmp_path, fmt):
+    _, k = _good(scene, tmp_path, n=10)
+    write_by_hand(tmp_path / "all.ply", **k, fmt=fmt)
+    data = (tmp_path / "all.ply").read_bytes().replace(b"element vertex 10\n", b"element vertex 7\n")
+    (tmp_path / "short.ply").write_bytes(data)
+    msg = _error(tmp_path / "short.ply")
+    assert ("declares 7 vertex rows" in msg and "room for 10" in msg) if fmt != "ascii" else \
+        ("10 data rows, but the header declares 7 vertex rows" in msg)

@@ -60,17 +60,17 @@ def _read_json(p: Path) -> dict:
     return d
 
 
-def _find_transforms(path: Path) -> tuple[dict[str, dict], Path]:
-    """{split: json} and the base folder. split "all" means: no explicit split."""
+def _find_transforms(path: Path) -> tuple[dict[str, dict], Path, dict[str, Path]]:
+    """{split: json}, the base folder and {split: file}. split "all" means: no explicit split."""
     if path.is_file():
-        return {"all": _read_json(path)}, path.parent
+        return {"all": _read_json(path)}, path.parent, {"all": path}
     if not path.is_dir():
         raise DatasetNotFoundError(f"transforms scene {path} does not exist; expected {LAYOUT}")
     if (path / "transforms.json").is_file():
-        return {"all": _read_json(path / "transforms.json")}, path
+        return {"all": _read_json(path / "transforms.json")}, path, {"all": path / "transforms.json"}
     tr, te = path / "transforms_train.json", path / "transforms_test.json"
     if tr.is_file() and te.is_file():
-        return {"train": _read_json(tr), "test": _read_json(te)}, path
+        return {"train": _read_json(tr), "test": _read_json(te)}, path, {"train": tr, "test": te}
     raise DatasetNotFoundError(f"no transforms.json (nor transforms_train.json + transforms_test.json) in {path}; "
                                f"expected {LAYOUT}")
 
@@ -98,11 +98,20 @@ def _image_path(base: Path, file_path: str, folder: str | None) -> Path:
 
 def _pose_opencv(c2w_gl, where: str) -> np.ndarray:
     """World-to-camera (OpenCV) from an OpenGL camera-to-world."""
-    c2w = np.asarray(c2w_gl, dtype=np.float64)
+    try:
+        c2w = np.asarray(c2w_gl, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise SceneFormatError(f"{where}: transform_matrix is not a matrix of numbers ({e})") from None
     if c2w.shape == (3, 4):
         c2w = np.vstack([c2w, [0, 0, 0, 1]])
     if c2w.shape != (4, 4):
         raise SceneFormatError(f"{where}: transform_matrix must be 4x4, got {c2w.shape}")
+    if not np.isfinite(c2w).all():
+        rows, cols = np.nonzero(~np.isfinite(c2w))
+        part = "translation" if all(c == 3 for c in cols) else "rotation" if all(c < 3 for c in cols) else "pose"
+        raise SceneFormatError(f"{where}: transform_matrix has {len(rows)} non-finite value(s) in its {part} "
+                               f"(at row, column {', '.join(f'({r}, {c})' for r, c in zip(rows, cols))}); "
+                               "fix or remove the frame")
     R = c2w[:3, :3]
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
         raise SceneFormatError(f"{where}: transform_matrix rotation is not a proper rotation "
@@ -194,9 +203,9 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
     if images == "auto":
         raise ValueError("images='auto' is for COLMAP scenes; name the folder (e.g. 'images_4')")
     path = Path(path)
-    files, base = _find_transforms(path)
+    files, base, sources = _find_transforms(path)
     root = next(iter(files.values()))
-    entries = _entries(files, base, images)
+    entries = _entries(files, base, images, sources)
     distorted = any(float(e.cam.get(k, 0.0)) != 0.0 for e in entries for k in DIST_KEYS)
     if distorted and not undistort:
         raise SceneFormatError(f"{base}: the cameras have non-zero distortion coefficients "
@@ -254,15 +263,17 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
                  background=torch.tensor(bg, dtype=torch.float32) if alpha_seen else None, meta=info)
 
 
-def _entries(files: dict[str, dict], base: Path, images: str | None) -> list[_Entry]:
+def _entries(files: dict[str, dict], base: Path, images: str | None, sources: dict[str, Path]) -> list[_Entry]:
     """Every frame of the files in order, its intrinsics the file's global ones under its own."""
-    frames: list[tuple[str, dict, dict]] = []  # (split, global, frame)
+    frames: list[tuple[str, dict, dict, int]] = []  # (split, global, frame, index in its file)
     for split, d in files.items():
         glob = {k: d[k] for k in _INTRINSIC_KEYS if k in d}
-        frames += [(split, glob, f) for f in d["frames"]]
+        frames += [(split, glob, f, i) for i, f in enumerate(d["frames"])]
     entries = []
-    for i, (split, glob, fr) in enumerate(frames):
-        where = f"{base} frame {i} ({fr.get('file_path')!r})"
+    for split, glob, fr, i in frames:
+        if not isinstance(fr, dict):
+            raise SceneFormatError(f"{sources[split]} frame {i}: not an object; expected {LAYOUT}")
+        where = f"{sources[split]} frame {i} ({fr.get('file_path')!r})"
         if "file_path" not in fr or "transform_matrix" not in fr:
             raise SceneFormatError(f"{where}: a frame needs file_path and transform_matrix; expected {LAYOUT}")
         cam = {**glob, **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}

@@ -19,19 +19,34 @@ def atomic_file(path: Path | str) -> Iterator[BinaryIO]:
     """A binary file to write ``path``'s new content to; it replaces ``path`` when the block ends
     without an error, and is removed otherwise. Parent folders are created."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        os.fchmod(fd, 0o666 & ~_umask())
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as e:
+        raise _naming(e, path) from None
+    try:
+        os.fchmod(fd, 0o666 & ~umask())
         with os.fdopen(fd, "wb") as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.filename is None:   # a full disk, an I/O error: say where
+            raise _naming(e, path) from None
         raise
+
+
+def _naming(e: OSError, path: Path) -> OSError:
+    """``e`` with ``path`` as its file name where it names none (ENOSPC from a write or an fsync
+    says only "[Errno 28] No space left on device")."""
+    if e.filename is not None or e.errno is None:
+        return e
+    named = OSError(e.errno, e.strerror or str(e), str(path))   # OSError() picks the errno's subclass
+    named.__traceback__ = e.__traceback__
+    return named
 
 
 def atomic_write_bytes(path: Path | str, data: bytes) -> None:
@@ -43,7 +58,7 @@ def atomic_write_text(path: Path | str, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def _umask() -> int:
+def umask() -> int:
     """The process's umask, read without changing it where Linux shows it (no window in which another
     thread would create files under a different mask)."""
     try:
@@ -55,3 +70,39 @@ def _umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+def replace_dir(new: Path | str, target: Path | str) -> None:
+    """Put the folder ``new`` in place of the folder ``target`` (which may not exist) and remove the
+    old one. Where the kernel and file system can (Linux ``renameat2`` with ``RENAME_EXCHANGE``)
+    the two are swapped in one atomic step; elsewhere ``target`` is first renamed aside, which
+    leaves a moment without it, but never a half-written folder in its place. Both must be on
+    one file system (``new`` is best made beside ``target``)."""
+    import shutil
+
+    new, target = Path(new), Path(target)
+    if not target.exists() and not target.is_symlink():
+        os.rename(new, target)
+        return
+    if not target.is_dir() or target.is_symlink():
+        raise NotADirectoryError(f"{target} is not a folder; move it away to write the new one there")
+    if _exchange(new, target):
+        shutil.rmtree(new, ignore_errors=True)   # now holds the old content
+        return
+    aside = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.old-"))
+    os.rename(target, aside / target.name)
+    os.rename(new, target)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); False where that is not there."""
+    import ctypes
+
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd, rename_exchange = -100, 2
+    return fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0

@@ -159,12 +159,13 @@ def read_ply(path: Path | str) -> PlySplats:
         raise PlyFormatError(path, "no such file", "a .ply file written by 3DGS, gsplat, nerfstudio or smgs")
     if path.stat().st_size == 0:
         raise PlyFormatError(path, "empty file (0 bytes)", "a PLY header starting with 'ply'")
+    _check_sizes(path, _header(path))   # before plyfile allocates what the header claims
     try:
         ply = plyfile.PlyData.read(str(path))   # memory-mapped: its non-mmap path reads row by row
-    except plyfile.PlyHeaderParseError as e:
-        raise PlyFormatError(path, f"not a readable PLY header ({e})",
+    except (plyfile.PlyHeaderParseError, UnicodeDecodeError) as e:
+        raise PlyFormatError(path, f"not a readable PLY header ({type(e).__name__}: {e})",
                              "'ply', 'format binary_little_endian 1.0', 'element vertex N', properties, "
-                             "'end_header'") from e
+                             "'end_header' as ASCII text") from e
     except plyfile.PlyElementParseError as e:
         raise PlyFormatError(path, f"truncated or corrupt data ({e}){_size_note(path)}",
                              "as many rows as the header's 'element vertex N' declares") from e
@@ -223,7 +224,28 @@ def read_ply(path: Path | str) -> PlySplats:
                     stack(["scale_0", "scale_1", "scale_2"]), stack(["rot_0", "rot_1", "rot_2", "rot_3"]),
                     extras, meta)
     out.check(path)
+    _check_activations(path, out)
     return out
+
+
+# exp overflows float32 above log(FLT_MAX) ≈ 88.72: a finite raw value that would render as inf
+_EXP_MAX = float(np.log(np.finfo(np.float32).max))
+
+
+def _check_activations(path: Path, s: PlySplats) -> None:
+    """Raw values whose activation overflows (exp(scale_i) = inf in float32; α and β under exp) are
+    refused naming the property, the count and the first vertex, instead of reaching the renderer as
+    an unnamed inf. γ may be +inf (a hard depth cut), so it is not checked."""
+    cols = {f"scale_{i}": s.scales[:, i] for i in range(3)}
+    cols |= {e: s.extras[e] for e in ("gef_alpha", "softmax_beta")
+             if e in s.extras and s.meta.get(f"activation.{e}", "exp") == "exp"}
+    for name, raw in cols.items():
+        over = np.flatnonzero(raw > _EXP_MAX)
+        if over.size:
+            i = int(over[0])
+            raise PlyFormatError(path, f"property {name} has {over.size} value(s) above {_EXP_MAX:.2f}, whose exp "
+                                 f"overflows float32 (vertex {i}: {name} = {float(raw[i]):g}, exp = inf)",
+                                 f"{name} the log of a finite size (values up to {_EXP_MAX:.2f})")
 
 
 def _meta(comments: list[str]) -> dict[str, str]:
@@ -284,29 +306,90 @@ _SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
           "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
 
 
-def _size_note(path: Path) -> str:
-    """For a binary file with one scalar element: how many bytes the header asks for and how many
-    there are (the header read as text; plyfile has already rejected the data)."""
+@dataclass
+class _Header:
+    """A PLY header as text, read without plyfile (which allocates what it declares)."""
+
+    fmt: str
+    elements: list[tuple[str, int, list[str]]]   # (name, declared count, property types; "list" for lists)
+    body_start: int
+    body_bytes: int
+
+    def simple_row(self) -> int | None:
+        """Bytes per vertex of a binary file with one element of scalar properties (else None)."""
+        if not self.fmt.startswith("binary") or len(self.elements) != 1:
+            return None
+        types = self.elements[0][2]
+        if not types or any(t not in _SIZES for t in types):
+            return None
+        return sum(_SIZES[t] for t in types)
+
+
+def _header(path: Path) -> _Header | None:
+    """The header of ``path``, parsed as text; None when it cannot be (plyfile then says why).
+    A file that does not start with 'ply' is refused here, naming its first bytes."""
     with open(path, "rb") as f:
         head = f.read(1 << 20)
+    if not (head.startswith(b"ply\n") or head.startswith(b"ply\r\n")):
+        raise PlyFormatError(path, f"not a PLY file: it begins with {head[:16]!r}",
+                             "'ply', then the format, the elements and 'end_header' as ASCII text")
     end = head.find(b"end_header")
-    if end < 0:
-        return ""
-    body_start = head.index(b"\n", end) + 1
-    lines = head[:end].decode("ascii", "replace").splitlines()
-    if not any(line.startswith("format binary") for line in lines):
-        return ""
-    count, row = None, 0
-    for line in lines:
+    if end < 0 or head.find(b"\n", end) < 0:
+        return None
+    fmt, elements = "", []
+    for line in head[:end].decode("ascii", "replace").splitlines():
         parts = line.split()
-        if parts[:2] == ["element", "vertex"] and len(parts) == 3:
-            count = int(parts[2])
-        elif parts[:1] == ["element"]:
-            return ""  # several elements: no simple size rule
-        elif parts[:1] == ["property"] and len(parts) == 3 and parts[1] in _SIZES:
-            row += _SIZES[parts[1]]
-    if count is None or not row:
+        if parts[:1] == ["format"] and len(parts) >= 2:
+            fmt = parts[1]
+        elif parts[:1] == ["element"] and len(parts) == 3:
+            try:
+                elements.append((parts[1], int(parts[2]), []))
+            except ValueError:
+                return None
+        elif parts[:1] == ["property"] and elements and len(parts) >= 3:
+            elements[-1][2].append("list" if parts[1] == "list" else parts[1])
+    body_start = head.index(b"\n", end) + 1
+    return _Header(fmt, elements, body_start, path.stat().st_size - body_start)
+
+
+def _check_sizes(path: Path, h: _Header | None) -> None:
+    """What the header declares against the bytes the file has: an ASCII file too short for its
+    declared rows (even at one character per value: 10^12 vertices claimed by a small file), a
+    binary file or an ASCII file with data beyond the declared vertices (a header whose count is too
+    small would have read part of the model silently)."""
+    if h is None:
+        return
+    if h.fmt == "ascii":
+        least = sum(count * 2 * max(1, len(types)) for _, count, types in h.elements)   # "v " per value
+        if least > h.body_bytes:
+            name, count, _ = max(h.elements, key=lambda e: e[1])
+            raise PlyFormatError(path, f"the header declares {count} {name} rows, which need at least {least} bytes "
+                                 f"as ASCII text; the file has {h.body_bytes} after its header",
+                                 "an 'element' count no larger than the rows the file holds")
+        if len(h.elements) == 1:
+            with open(path, "rb") as f:
+                f.seek(h.body_start)
+                rows = sum(1 for line in f if line.strip())
+            if rows > h.elements[0][1]:
+                raise PlyFormatError(path, f"{rows} data rows, but the header declares {h.elements[0][1]} "
+                                     f"{h.elements[0][0]} rows (the rest would be ignored)",
+                                     "an 'element' count equal to the rows the file holds")
+        return
+    row = h.simple_row()
+    if row is not None and h.body_bytes - h.elements[0][1] * row >= row:
+        name, count, _ = h.elements[0]
+        raise PlyFormatError(path, f"the header declares {count} {name} rows × {row} bytes = {count * row} bytes, "
+                             f"but the file has {h.body_bytes} bytes of data (room for {h.body_bytes // row}); "
+                             "the rest would be ignored", "an 'element' count that covers the file's data")
+
+
+def _size_note(path: Path) -> str:
+    """For a binary file with one scalar element: how many bytes the header asks for and how many
+    there are (plyfile has already rejected the data)."""
+    h = _header(path)
+    row = h.simple_row() if h is not None else None
+    if row is None:
         return ""
-    have = path.stat().st_size - body_start
+    count, have = h.elements[0][1], h.body_bytes
     return (f": the header declares {count} vertices × {row} bytes = {count * row} bytes of data, the file "
             f"has {have} (room for {have // row} vertices)")
