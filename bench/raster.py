@@ -266,9 +266,9 @@ def main(argv=None) -> None:
             labels = [(m if s == "global" else f"{m}/{s}") + ("" if sc == "pixel" else f"@{sc}")
                       for sc in args.scopes for s in args.sorts for m in args.modes
                       if sc == "pixel" or mode_flags(m)[1]]   # the scope changes softmax modes only
-            if base == "cuda":
-                labels = [m for m in labels if "/" not in m]   # no per-pixel order on cuda
-            if args.leaders and base != "cuda":   # (cuda composites them on host copies)
+            if backend == "cuda":   # the default kernels: no per-pixel order (cuda:v2 has one)
+                labels = [m for m in labels if "/" not in m]
+            if args.leaders and backend != "cuda":   # (the default cuda kernels composite them on host copies)
                 labels += [f"{m}+leaders" for m in labels]
             res = bench_modes(params, cam, labels, backend, args.k_max, reps, args.warmup)
             for mode, r in res.items():

@@ -171,3 +171,58 @@ class StandInCompositing(_Bound):
             if g.get(k) is not None:
                 packed[:, c0:c0 + width] = g[k].reshape(n, width)
         return [packed]
+
+    # -- the per-pixel entries (cuda_pixel.cu): the CPU backend's re-sorting window ----------------------
+    def _render_pixel(self, v, ins):
+        from smgs.raster import constants as K
+        from smgs.raster.cpu import rasterize_splats_cpu
+        from smgs.raster.types import RayDepth
+
+        assert v["lead_alpha"] in (-1.0, K.LEADER_ALPHA), v["lead_alpha"]
+        mode = {(False, False): "3dgs", (True, False): "gef_only", (False, True): "softmax_only",
+                (True, True): "softmax_gs"}[(v["use_gef"], v["use_softmax"])]
+        bg = v["background"] if v["background"].numel() else None
+        return rasterize_splats_cpu(
+            *(ins[k] for k in ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")),
+            v["width"], v["height"], mode=mode, k_max=v["k_max"], background=bg,
+            eq15="solved" if v["solved"] else "printed", ray_depth=RayDepth(v["coefs"], *v["intr"]),
+            window=v["window"], leaders=v["lead_alpha"] >= 0, k_max_scope="patch" if v["patch"] else "pixel")
+
+    def forward_pixel(self, *args):
+        v = self.bind("forward_pixel_v2", args)
+        ins = {k: (None if v[k].numel() == 0 else v[k]) for k in
+               ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")}
+        out = self._render_pixel(v, ins)
+        self.saved = dict(v=v, ins=ins)
+        n, nch = v["means2d"].shape[0], v["colors"].shape[1]
+        outs = dict(rgb=out.rgb, alpha=out.alpha, depth=out.depth, n_contrib=out.stats.n_contrib.int(),
+                    T_final=1 - out.alpha, pairs=torch.tensor([12345]),
+                    leaders=(out.leaders.int() if out.leaders is not None else torch.zeros(0, 0, 2, dtype=torch.int32)),
+                    list_end=torch.full_like(out.alpha, 7).int(), pk=torch.full((n, 10 + nch), 0.5),
+                    ranges=torch.zeros(1, 2, dtype=torch.int32), tile_list=torch.arange(3, dtype=torch.int32),
+                    box=torch.zeros(n, 4, dtype=torch.int32))
+        self.outs = outs
+        return [outs[k] for k in returned(self.src, "forward_pixel_v2")]
+
+    def backward_pixel(self, *args):
+        v = self.bind("backward_pixel_v2", args)
+        for k in ("alpha_out", "depth_out", "n_contrib", "pk", "ranges", "tile_list", "box"):
+            ref = self.outs[{"alpha_out": "alpha", "depth_out": "depth"}.get(k, k)]
+            assert torch.equal(v[k], ref), f"backward_pixel got the wrong tensor as {k}"
+        fv, ins = self.saved["v"], self.saved["ins"]
+        assert torch.equal(v["coefs"], fv["coefs"]) and v["intr"] == fv["intr"] and v["window"] == fv["window"]
+        assert v["scratch_budget_bytes"] > 0
+        leaves = {k: (None if t is None else t.detach().clone().requires_grad_(True)) for k, t in ins.items()}
+        with torch.enable_grad():
+            out = self._render_pixel(fv, leaves)
+            loss = (out.rgb * v["g_rgb"]).sum() + (out.alpha * v["g_alpha"]).sum() + (out.depth * v["g_depth"]).sum()
+        live = {k: t for k, t in leaves.items() if t is not None}
+        g = dict(zip(live, torch.autograd.grad(loss, list(live.values()), allow_unused=True)))
+        n, nch = v["n"], v["n_channels"]
+        packed = torch.zeros(n, 10 + nch)
+        mx, my, ca, cc, o, d, al, be, ga, col = LAYOUT
+        for k, c0, width in (("means2d", mx, 2), ("conics", ca, 3), ("opacities", o, 1), ("depths", d, 1),
+                             ("alpha", al, 1), ("beta", be, 1), ("gamma", ga, 1), ("colors", col, nch)):
+            if g.get(k) is not None:
+                packed[:, c0:c0 + width] = g[k].reshape(n, width)
+        return [packed]

@@ -59,7 +59,7 @@ def compiled(tmp_path_factory):
     out = tmp_path_factory.mktemp("cuda_v2_build")
     flags = dict(ptxas_report.sources())
     procs = {}
-    for src in ("projection_cuda.cu", "cuda_v2_kernel.cu"):
+    for src in ("projection_cuda.cu", "cuda_v2_kernel.cu", "cuda_pixel.cu"):
         procs[src] = subprocess.Popen(ptxas_report.compile_command(nv, src, flags[src], "sm_90", out),
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     logs = {}
@@ -82,7 +82,8 @@ def test_v2_backward_and_projection_kernels_do_not_spill(compiled):
         assert ("projection_cuda.cu", f"project_fwd_kernel<{deg}>") in names
         assert ("projection_cuda.cu", f"project_bwd_kernel<{deg}>") in names
     bwd = [k for k in kernels if k.source == "cuda_v2_kernel.cu" and k.name.startswith("bwd_kernel<")]
-    assert len(bwd) == 8 and len([k for k in kernels if k.name.startswith("fwd_kernel<")]) == 8
+    assert len(bwd) == 8 and len([k for k in kernels if k.source == "cuda_v2_kernel.cu"
+                                  and k.name.startswith("fwd_kernel<")]) == 8
     for k in bwd + [k for k in kernels if k.source == "projection_cuda.cu"]:
         assert (k.spill_stores, k.spill_loads, k.stack) == (0, 0, 0), k
     for k in bwd:   # the launch bounds' occupancy: 3 blocks of 256 without softmax, 2 with
@@ -103,6 +104,26 @@ def test_v2_ptx_has_the_record_layout_and_the_arithmetic_diet(compiled):
         if "fwd_kernel" in name or "bwd_kernel" in name:
             assert body.count("mul.rn.f32") >= 5, name   # splat_quad's unfused products
             assert "fma.rn.f32" in body, name
+
+
+def test_per_pixel_kernels_compile_and_keep_their_window_in_local_memory(compiled):
+    """cuda_pixel.cu: every mode's forward and backward; the window (32 entries of 5 words per
+    thread) is the only stack, the backward does not spill, and its step records are written as
+    float4 (and read so where every field is used: softmax)."""
+    kernels, ptx = compiled
+    px = [k for k in kernels if k.source == "cuda_pixel.cu"]
+    assert len([k for k in px if k.name.startswith("fwd_kernel<")]) == 8
+    bwd = [k for k in px if k.name.startswith("bwd_kernel<")]
+    assert len(bwd) == 8
+    for k in px:
+        assert 640 <= k.stack <= 640 + 64, k
+    for k in bwd:
+        assert (k.spill_stores, k.spill_loads) == (0, 0), k
+    for name, body in ptx["cuda_pixel.cu"].items():
+        if "bwd_kernel" in name:
+            assert "st.global.v4" in body, name
+            if re.search(r"bwd_kernelILb[01]ELb1E", name):   # softmax reads every field back
+                assert "ld.global.v4.f32" in body, name
 
 
 def test_projection_ptx_has_no_fma(compiled):

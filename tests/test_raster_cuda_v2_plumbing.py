@@ -16,7 +16,7 @@ from cuda_v2_standin import CSRC, LAYOUT, PYTYPE, StandInCompositing, StandInPro
 
 from smgs.camera import Camera
 from smgs.raster import constants as K
-from smgs.raster import cuda_v2, rasterize
+from smgs.raster import cuda_v2, rasterize, rasterize_splats
 from smgs.raster.types import MODES
 
 def _scene(n: int, seed: int, sh_degree: int | None):
@@ -96,13 +96,15 @@ def test_bindings_signatures_and_pybind_names_agree():
     for src, pairs in (((CSRC / "projection_cuda_binding.cpp").read_text(),
                         (("project_forward_torch", "forward"), ("project_backward_torch", "backward"))),
                        ((CSRC / "cuda_v2_binding.cpp").read_text(), (("forward_v2", "forward"),
-                                                                      ("backward_v2", "backward")))):
+                                                                      ("backward_v2", "backward"),
+                                                                      ("forward_pixel_v2", "forward_pixel"),
+                                                                      ("backward_pixel_v2", "backward_pixel")))):
         for fn, name in pairs:
             ps = params(src, fn)
             assert [n for _, n in ps] == py_args(src, name), fn
             assert all(t in PYTYPE for t, _ in ps), ps
     v2 = (CSRC / "cuda_v2_binding.cpp").read_text()
-    assert len(returned(v2, "forward_v2")) == 11
+    assert len(returned(v2, "forward_v2")) == 11 and len(returned(v2, "forward_pixel_v2")) == 12
     assert len(returned((CSRC / "projection_cuda_binding.cpp").read_text(), "project_forward_torch")) == 5
 
 
@@ -128,3 +130,59 @@ def test_v2_applies_only_where_the_cuda_backend_renders(monkeypatch):
     b = rasterize(sc["means3d"], sc["quats"], sc["scales"], sc["opacities"], sc["colors_or_sh"], cam,
                   cuda_kernels="v2", **kw)
     assert torch.equal(a.rgb, b.rgb) and torch.equal(a.extras["ids"], b.extras["ids"])
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("sorted_per_pixel,leaders,scope", [(True, False, "pixel"), (True, True, "patch"),
+                                                             (False, True, "pixel")])
+def test_per_pixel_plumbing_matches_the_cpu_window(mode, sorted_per_pixel, leaders, scope):
+    """The per-pixel entries (cuda_pixel.cu) through a stand-in computing with the CPU window: the
+    wrapper's images, leaders and gradients equal the CPU backend's own per-pixel path."""
+    from smgs.raster import cpu
+
+    if not cpu.is_available():
+        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
+    from smgs.raster.ray_depth import ray_depth
+
+    cam = Camera.look_at([0.1, -0.1, -2.0], [0.0, 0.0, 3.0], [0, -1, 0], fx=40.0, fy=38.0, width=23, height=19)
+    sc = _scene(40, 3, None)
+    from smgs.raster.projection import project_gaussians
+
+    p = project_gaussians(sc["means3d"], sc["quats"], sc["scales"], cam, fused=False)
+    ids = p.ids
+    rd = ray_depth(sc["means3d"][ids], sc["quats"][ids], sc["scales"][ids], cam) if sorted_per_pixel else None
+    base = dict(means2d=p.means2d.detach(), conics=p.conics.detach(), opacities=sc["opacities"][ids],
+                colors=sc["colors_or_sh"][ids], depths=p.depths.detach(), alpha=sc["alpha"][ids],
+                beta=sc["beta"][ids], gamma=sc["gamma"][ids])
+
+    def run(via_v2: bool):
+        ins = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+        bg = torch.tensor([0.2, 0.5, 0.7], requires_grad=True)
+        args = [ins[k] for k in ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")]
+        if via_v2:
+            ext = StandInCompositing()
+            out = cuda_v2.composite_pixel(ext, *args, 23, 19, mode, 4, bg, "solved", None, 1.0, K.T_MIN, scope, rd,
+                                          K.SORT_WINDOW, K.LEADER_ALPHA if leaders else None)
+            assert ext.calls == ["forward_pixel_v2"]
+        else:
+            out = rasterize_splats(*args, 23, 19, mode=mode, k_max=4, background=bg, backend="cpu", ray_depth=rd,
+                                   leaders=leaders, k_max_scope=scope)
+        g = torch.Generator().manual_seed(2)
+        loss = sum((t * torch.rand(t.shape, generator=g)).sum() for t in (out.rgb, out.alpha, out.depth))
+        loss.backward()
+        return out, {**{k: t.grad for k, t in ins.items()}, "background": bg.grad}
+
+    ov, gv = run(True)
+    oc, gc = run(False)
+    for a, b in ((ov.rgb, oc.rgb), (ov.alpha, oc.alpha), (ov.depth, oc.depth)):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert torch.equal(ov.stats.n_contrib, oc.stats.n_contrib)
+    assert (ov.leaders is None) == (not leaders)
+    if leaders:
+        assert torch.equal(ov.leaders, oc.leaders)
+    for k, want in gc.items():
+        got = gv[k]
+        if want is None:
+            assert got is None or (got == 0).all(), k
+        else:
+            torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-7, msg=k)

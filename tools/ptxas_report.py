@@ -49,7 +49,7 @@ def sources() -> list[tuple[str, list[str]]]:
     from smgs.raster import cuda, cuda_v2, projection_cuda
 
     return [("cuda_kernel.cu", list(cuda.CUDA_CFLAGS)), ("cuda_v2_kernel.cu", list(cuda_v2.CUDA_CFLAGS)),
-            ("projection_cuda.cu", list(projection_cuda.CUDA_CFLAGS))]
+            ("cuda_pixel.cu", list(cuda_v2.CUDA_CFLAGS)), ("projection_cuda.cu", list(projection_cuda.CUDA_CFLAGS))]
 
 
 def nvcc() -> str | None:
@@ -78,7 +78,7 @@ def _demangle(names: list[str]) -> list[str]:
 
 
 def _short(name: str) -> str:
-    name = re.sub(r"\(anonymous namespace\)::|smgs::(cuda::)?(v2::)?", "", name)
+    name = re.sub(r"\(anonymous namespace\)::|smgs::(cuda::)?((v2|pixel)::)?", "", name)
     name = re.sub(r"\(.*\)$", "", name)   # parameter list
     return name.replace("void ", "")
 

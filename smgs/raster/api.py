@@ -189,7 +189,9 @@ def rasterize_splats(
     what the softmax head is (docs/kmax-scope.md): ``"pixel"``, each pixel's first k_max composited
     splats; ``"patch"``, the splats at positions < k_max of its 16x16 tile's depth-sorted list.
     ``cuda_kernels``: which CUDA kernels composite where the cuda backend does (``"default"``, or the
-    opt-in ``"v2"``, docs/cuda.md); None reads ``$SMGS_CUDA_KERNELS`` (default ``"default"``).
+    opt-in ``"v2"``, docs/cuda.md); None reads ``$SMGS_CUDA_KERNELS`` (default ``"default"``). With
+    ``"v2"``, ``ray_depth`` and ``leaders`` on CUDA tensors run on the GPU (the CPU window's twin,
+    windows up to 32 splats, no ``reg_values``) instead of on host copies.
     """
     return _rasterize_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
                              k_max, background, backend, eq15, reg_values, reg_depth_scale, t_min, ray_depth,
@@ -215,17 +217,24 @@ def _rasterize_splats(means2d, conics, opacities, colors, depths, alpha, beta, g
         if ray_depth.coefs.shape != (means2d.shape[0], 9):
             raise ValueError(f"ray_depth.coefs must be [N,9] for the N={means2d.shape[0]} splats, "
                              f"got {tuple(ray_depth.coefs.shape)}")
-        if backend == "cuda":
-            raise ValueError("sort='per_pixel' has no CUDA kernel yet; use backend='reference' or 'auto'")
-    if ray_depth is not None and backend == "auto":   # cpu, reference, or the cpu on host copies ("host")
+        if backend == "cuda" and kernels != "v2":
+            raise ValueError("sort='per_pixel' has no CUDA kernel among the default ones; use the opt-in kernels "
+                             "(cuda_kernels='v2', docs/cuda.md), backend='reference' or 'auto'")
+    # the opt-in kernels order each pixel (and give the leading-splat map) on the GPU itself
+    pixel_on_gpu = (kernels == "v2" and (ray_depth is not None or leaders) and reg_values is None
+                    and backend in ("auto", "cuda")
+                    and resolve_backend(backend, means2d.device, means2d.dtype) == "cuda")
+    if ray_depth is not None and backend == "auto" and not pixel_on_gpu:   # cpu, reference, or "host"
         name = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
     else:
         name = resolve_backend(backend, means2d.device, means2d.dtype)
-    if name == "host" or (leaders and name == "cuda"):
+    if name == "host" or (leaders and name == "cuda" and not pixel_on_gpu):
         fn = _on_host
     else:
         fn = _load_backend(name)
-    if name == "cuda" and kernels == "v2" and ray_depth is None and not leaders:
+    if pixel_on_gpu:
+        from smgs.raster.cuda_v2 import rasterize_splats_pixel_cuda as fn
+    elif name == "cuda" and kernels == "v2" and ray_depth is None and not leaders:
         from smgs.raster.cuda_v2 import rasterize_splats_cuda_v2 as fn
     extra = {} if ray_depth is None else {"ray_depth": ray_depth}
     if leaders:

@@ -1,6 +1,8 @@
-"""The opt-in CUDA kernels ("v2"; docs/cuda.md): the fused projection (``projection_cuda``) and the
+"""The opt-in CUDA kernels ("v2"; docs/cuda.md): the fused projection (``projection_cuda``), the
 v2 compositing kernels (``csrc/cuda_v2_kernel.cu``: FMA with bit-equal reach and stop decisions, a
-lean shared-memory batch, the softmax backward's head as whole 32-byte records in a persistent grid).
+lean shared-memory batch, the softmax backward's head as whole 32-byte records in a persistent grid)
+and the per-pixel order and leading-splat map on the GPU (``csrc/cuda_pixel.cu``, the twin of the
+CPU backend's re-sorting window).
 
 Selected with ``rasterize(..., cuda_kernels="v2")`` / ``rasterize_splats(..., cuda_kernels="v2")``
 or ``SMGS_CUDA_KERNELS=v2`` (``kernel_choice``); the default stays the CUDA path last verified on a
@@ -21,18 +23,20 @@ from smgs.raster import constants as K
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
 from smgs.raster.kernel_args import CompositeSettings, composite_settings, kernel_grads, kernel_inputs, kernel_output
-from smgs.raster.types import Eq15, KMaxScope, RenderOutput
+from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # cuda_kernel.cu brings the default backend's binning (prepare, prefix sum, keys, sort, ranges)
-SOURCES = ("cuda_v2_binding.cpp", "cuda_kernel.cu", "cuda_v2_kernel.cu")
-HEADERS = ("cuda_kernel.h", "cuda_v2_kernel.h", "splat_math.h")
+SOURCES = ("cuda_v2_binding.cpp", "cuda_kernel.cu", "cuda_v2_kernel.cu", "cuda_pixel.cu")
+HEADERS = ("cuda_kernel.h", "cuda_v2_kernel.h", "cuda_pixel.h", "splat_math.h")
 # FMA contraction on (nvcc's default); the reach arithmetic is written with mul_rn/add_rn, which are
 # never fused (splat_math.h), so the decisions stay the other backends'.
 CUDA_CFLAGS = ["-O3", "--fmad=true"]
 CFLAGS = ["-O3"]
 # Bound of the softmax backward's head scratch (the persistent grid shrinks to fit it).
 HEAD_BUDGET_BYTES = 512 * 2**20
+# Bound of the per-pixel backward's step records (every composited step of the pixels in flight).
+PIXEL_BUDGET_BYTES = 512 * 2**20
 
 KERNELS = ("default", "v2")
 KERNELS_ENV = "SMGS_CUDA_KERNELS"
@@ -185,3 +189,78 @@ def rasterize_fused(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     ids = torch.arange(means3d.shape[0], device=means3d.device)
     out.extras.update(ids=ids, means2d=proj.means2d, radii=proj.radii)
     return out
+
+
+class _RasterizePixelCUDA(torch.autograd.Function):
+    """sort="per_pixel" / the leading-splat map through csrc/cuda_pixel.cu (the twin of
+    ``cpu._RasterizePixelCPU``): inputs as ``rasterize_splats`` (no reg_values), then the peak-depth
+    coefficients and the settings."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, coefs,
+                settings: CompositeSettings, intr: list[float], window: int, lead_alpha: float, ext):
+        st = settings
+        empty = means2d.new_empty(0)
+        opt = lambda t: empty if t is None else t  # noqa: E731
+        (rgb, alpha_out, depth, cnt, t_final, pairs, leaders, list_end, pk, ranges, tile_list,
+         box) = ext.forward_pixel(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
+                                  opt(background), coefs, intr, st.width, st.height, st.use_gef, st.use_softmax,
+                                  st.k_max, st.solved, window, lead_alpha, st.patch)
+        ctx.save_for_backward(alpha_out, depth, cnt, t_final, pk, ranges, tile_list, box, coefs, opt(background))
+        ctx.settings, ctx.ext, ctx.intr, ctx.window = st, ext, intr, window
+        ctx.n_splats, ctx.n_channels, ctx.n_reg = means2d.shape[0], colors.shape[1], 0
+        ctx.mark_non_differentiable(cnt, pairs, t_final, leaders, list_end)
+        return rgb, alpha_out, depth, cnt, pairs, t_final, leaders, list_end
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_alpha, g_depth, _g_cnt, _g_pairs, _g_t, _g_lead, _g_end):
+        alpha_out, depth, cnt, t_final, pk, ranges, tile_list, box, coefs, bg = ctx.saved_tensors
+        st = ctx.settings
+        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
+        (grad,) = ctx.ext.backward_pixel(
+            g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, pk, ranges, tile_list, box, coefs, ctx.intr, bg,
+            ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+            ctx.window, st.patch, PIXEL_BUDGET_BYTES)
+        grads = split_packed(grad, ctx.ext.layout(), ctx.n_channels, 0)
+        # kernel_grads' ten inputs end with reg_values, here the coefficients (no gradient); then the
+        # settings, intrinsics, window, lead_alpha and the extension
+        return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:9] + (None,) * 6
+
+
+def composite_pixel(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
+                    background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN,
+                    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE, ray_depth: RayDepth | None = None,
+                    window: int = K.SORT_WINDOW, lead_alpha: float | None = None) -> RenderOutput:
+    """The per-pixel kernels with the extension passed in: sort="per_pixel" through the re-sorting
+    window (``ray_depth``), or (``ray_depth`` None) the global order for the leading-splat map (zero
+    peak-depth coefficients make every key the centre depth, which a window of 1 keeps in order), as
+    ``cpu._per_pixel``."""
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
+    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    what = "sort='per_pixel'" if ray_depth is not None else "leaders=True"
+    if args[9] is not None:
+        raise ValueError(f"{what} on the cuda backend has no variance-regulariser sums (reg_values); "
+                         "render without reg_values or with backend='reference'")
+    if ray_depth is None:
+        coefs, intr, window = means2d.new_zeros(means2d.shape[0], 9), [1.0, 1.0, 0.0, 0.0], 1
+    else:
+        coefs = ray_depth.coefs.detach().to(torch.float32).contiguous()
+        intr = [float(ray_depth.fx), float(ray_depth.fy), float(ray_depth.cx), float(ray_depth.cy)]
+    rgb, alpha_out, depth, cnt, pairs, _, leaders, list_end = _RasterizePixelCUDA.apply(
+        *args[:9], coefs, st, intr, int(window), -1.0 if lead_alpha is None else float(lead_alpha), ext)
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if lead_alpha is not None else None,
+                         list_end)
+
+
+def rasterize_splats_pixel_cuda(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
+                                mode: str = "softmax_gs", k_max: int = K.DEFAULT_K_MAX,
+                                background: torch.Tensor | None = None, eq15: Eq15 = "solved",
+                                reg_values: torch.Tensor | None = None, reg_depth_scale: float = 1.0,
+                                t_min: float = K.T_MIN, k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
+                                ray_depth: RayDepth | None = None, leaders: bool = False,
+                                window: int = K.SORT_WINDOW) -> RenderOutput:
+    """``rasterize_splats`` with ``ray_depth`` and/or ``leaders`` on CUDA tensors, through the
+    per-pixel kernels (csrc/cuda_pixel.cu, the CPU window's twin; windows up to 32 splats)."""
+    return composite_pixel(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width,
+                           height, mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, k_max_scope,
+                           ray_depth, window, K.LEADER_ALPHA if leaders else None)

@@ -27,7 +27,7 @@ from smgs.camera import Camera
 from smgs.raster import constants as K
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
-from smgs.raster.projection import _packed_view, _view
+from smgs.raster.projection import host_view
 
 _CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("projection_cuda_binding.cpp", "projection_cuda.cu")
@@ -65,13 +65,10 @@ def extension():
 
 
 def camera_floats(camera: Camera) -> list[float]:
-    """The 25 host floats the kernels take: projection.py's packed camera quantities in float32
-    (rw, tw, f, c, lo, hi, size) and the camera centre (the SH directions' origin), as ``rasterize``
-    computes them. A camera on a device is read back once (one synchronisation); the trainer's
-    cameras live on the host."""
-    cpu = Camera(camera.K.detach().cpu(), camera.viewmat.detach().cpu(), camera.width, camera.height)
-    view = _packed_view(_view(cpu, torch.float32, torch.device("cpu")))
-    return view.tolist() + cpu.center.to(torch.float32).tolist()
+    """The 25 host floats the kernels take: ``projection.host_view`` with the camera centre, in
+    float32 (rw, tw, f, c, lo, hi, size, centre; the centre is the SH directions' origin). A camera
+    on a device is read back (a synchronisation); the trainer's cameras live on the host."""
+    return host_view(camera, torch.float32, center=True).tolist()
 
 
 @dataclass

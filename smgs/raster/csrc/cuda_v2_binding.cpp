@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "cuda_kernel.h"
+#include "cuda_pixel.h"
 #include "cuda_v2_kernel.h"
 #include "splat_math.h"  // kTileSize (host-side here)
 
@@ -63,14 +64,17 @@ Scene make_scene(const at::Tensor& pk, const at::Tensor& ranges, const at::Tenso
   return sc;
 }
 
-}  // namespace
+// The default backend's binning of the splats (culled rows, radii (0, 0), left out): packed rows,
+// pixel boxes, the sorted tile list and each tile's range in it.
+struct Binned {
+  at::Tensor pk, box, ranges, tile_list;
+  int W, H, nch, R;
+};
 
-// Returns [rgb, alpha, depth, reg, n_contrib, T_final, last, pairs, pk, ranges, tile_list].
-std::vector<at::Tensor> forward_v2(at::Tensor means2d, at::Tensor conics, at::Tensor opacities, at::Tensor colors,
-                                   at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
-                                   at::Tensor background, at::Tensor reg_values, at::Tensor radii, int64_t width,
-                                   int64_t height, bool use_gef, bool use_softmax, int64_t k_max, bool solved,
-                                   double reg_scale, bool patch) {
+Binned bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
+           const at::Tensor& depths, const at::Tensor& alpha, const at::Tensor& beta, const at::Tensor& gamma,
+           const at::Tensor& background, const at::Tensor& reg_values, const at::Tensor& radii, int64_t width,
+           int64_t height, bool use_gef, bool use_softmax, void* st) {
   check_f32(means2d, "means2d");
   check_f32(conics, "conics");
   check_f32(opacities, "opacities");
@@ -89,8 +93,6 @@ std::vector<at::Tensor> forward_v2(at::Tensor means2d, at::Tensor conics, at::Te
     TORCH_CHECK(radii.dim() == 2 && radii.size(0) == N && radii.size(1) == 2,
                 "smgs cuda backend (v2 kernels): radii must be [N, 2] like means2d");
   }
-  const c10::cuda::CUDAGuard guard(means2d.device());
-  void* st = c10::cuda::getCurrentCUDAStream().stream();
   const at::Device dev = means2d.device();
   TORCH_CHECK(N < INT32_MAX, "smgs cuda backend: fewer than 2^31 splats");
   TORCH_CHECK(width > 0 && height > 0 && width * height < INT32_MAX, "smgs cuda backend: bad image size");
@@ -105,7 +107,7 @@ std::vector<at::Tensor> forward_v2(at::Tensor means2d, at::Tensor conics, at::Te
   auto i32 = at::TensorOptions().dtype(at::kInt).device(dev);
   auto i64 = at::TensorOptions().dtype(at::kLong).device(dev);
 
-  // binning: boxes and tile counts (culled rows none), prefix sum, keys, stable radix sort, ranges
+  // boxes and tile counts (culled rows none), prefix sum, keys, stable radix sort, ranges
   at::Tensor pk = at::empty({N, S}, f32), box = at::empty({N, 4}, i32), nt = at::empty({N}, i64),
              dbits = at::empty({N}, i32), offs = at::empty({N}, i64);
   SplatsIn in{means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
@@ -139,7 +141,26 @@ std::vector<at::Tensor> forward_v2(at::Tensor means2d, at::Tensor conics, at::Te
   check(tile_ranges(reinterpret_cast<const uint64_t*>(skeys.data_ptr<int64_t>()), int(count), ntile,
                     ranges.data_ptr<int32_t>(), st),
         "tile ranges");
-  skeys = at::Tensor();
+  return {pk, box, ranges, svals, W, H, nch, R};
+}
+
+}  // namespace
+
+// Returns [rgb, alpha, depth, reg, n_contrib, T_final, last, pairs, pk, ranges, tile_list].
+std::vector<at::Tensor> forward_v2(at::Tensor means2d, at::Tensor conics, at::Tensor opacities, at::Tensor colors,
+                                   at::Tensor depths, at::Tensor alpha, at::Tensor beta, at::Tensor gamma,
+                                   at::Tensor background, at::Tensor reg_values, at::Tensor radii, int64_t width,
+                                   int64_t height, bool use_gef, bool use_softmax, int64_t k_max, bool solved,
+                                   double reg_scale, bool patch) {
+  const c10::cuda::CUDAGuard guard(means2d.device());
+  void* st = c10::cuda::getCurrentCUDAStream().stream();
+  const Binned b = bin(means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values, radii,
+                       width, height, use_gef, use_softmax, st);
+  const int W = b.W, H = b.H, nch = b.nch, R = b.R;
+  const at::Tensor &pk = b.pk, &ranges = b.ranges, &svals = b.tile_list;
+  auto f32 = at::TensorOptions().dtype(at::kFloat).device(means2d.device());
+  auto i32 = at::TensorOptions().dtype(at::kInt).device(means2d.device());
+  auto i64 = at::TensorOptions().dtype(at::kLong).device(means2d.device());
 
   // compositing
   at::Tensor rgb = at::empty({H, W, nch}, f32), a = at::empty({H, W}, f32), dep = at::empty({H, W}, f32),
@@ -205,6 +226,88 @@ std::vector<at::Tensor> backward_v2(at::Tensor g_rgb, at::Tensor g_alpha, at::Te
   return {grad};
 }
 
+// sort="per_pixel" and the leading-splat map (cuda_pixel.cu, the twin of the CPU backend's
+// forward_pixel): coefs [N, 9] the peak-depth coefficients (smgs/raster/ray_depth.py), intr
+// (fx, fy, cx, cy) host floats, window 1..32 (1: the global order), lead_alpha < 0: no map.
+// leaders [H, W, 2]: each pixel's first two composited splats with a >= lead_alpha (input indices,
+// -1 where fewer; empty without the map).
+// Returns [rgb, alpha, depth, n_contrib, T_final, pairs, leaders, list_end, pk, ranges, tile_list, box].
+std::vector<at::Tensor> forward_pixel_v2(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                         at::Tensor colors, at::Tensor depths, at::Tensor alpha, at::Tensor beta,
+                                         at::Tensor gamma, at::Tensor background, at::Tensor coefs,
+                                         std::vector<double> intr, int64_t width, int64_t height, bool use_gef,
+                                         bool use_softmax, int64_t k_max, bool solved, int64_t window,
+                                         double lead_alpha, bool patch) {
+  const int64_t N = means2d.size(0);
+  check_f32(coefs, "coefs");
+  TORCH_CHECK(coefs.dim() == 2 && coefs.size(0) == N && coefs.size(1) == 9, "coefs must be [N, 9]");
+  TORCH_CHECK(intr.size() == 4, "intrinsics must be (fx, fy, cx, cy)");
+  TORCH_CHECK(window >= 1 && window <= pixel::kMaxWindow, "smgs cuda backend (v2 kernels): the window must be 1..",
+              pixel::kMaxWindow, " splats, got ", window, " (the cpu backend takes any)");
+  const c10::cuda::CUDAGuard guard(means2d.device());
+  void* st = c10::cuda::getCurrentCUDAStream().stream();
+  const at::Tensor none = at::empty({0}, means2d.options());
+  const Binned b = bin(means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, none, none, width,
+                       height, use_gef, use_softmax, st);
+  const int W = b.W, H = b.H, nch = b.nch;
+  auto f32 = means2d.options();
+  auto i32 = f32.dtype(at::kInt);
+  at::Tensor rgb = at::empty({H, W, nch}, f32), a = at::empty({H, W}, f32), dep = at::empty({H, W}, f32),
+             Tf = at::empty({H, W}, f32), cnt = at::empty({H, W}, i32), lend = at::empty({H, W}, i32),
+             pairs = at::zeros({1}, f32.dtype(at::kLong)), chan = at::empty({int64_t(fwd_chan_floats(nch, W, H))}, f32);
+  const bool lead = lead_alpha >= 0.0;
+  at::Tensor leaders = at::empty({lead ? H : 0, lead ? W : 0, 2}, i32);
+  Scene sc = make_scene(b.pk, b.ranges, b.tile_list, background, W, H, nch, 0, use_gef, use_softmax, k_max, solved, 1.0,
+                        patch);
+  FwdOut o{rgb.data_ptr<float>(), a.data_ptr<float>(), dep.data_ptr<float>(), Tf.data_ptr<float>(), nullptr,
+           nullptr, cnt.data_ptr<int32_t>(), reinterpret_cast<unsigned long long*>(pairs.data_ptr<int64_t>()),
+           chan.numel() ? chan.data_ptr<float>() : nullptr};
+  const pixel::PixelIn pin{b.box.data_ptr<int32_t>(), coefs.data_ptr<float>(), float(intr[0]), float(intr[1]),
+                           float(intr[2]), float(intr[3]), int(window)};
+  const pixel::PixelOut po{lead ? leaders.data_ptr<int32_t>() : nullptr, float(lead_alpha), lend.data_ptr<int32_t>()};
+  check(pixel::forward(sc, pin, o, po, st), "per-pixel forward");
+  return {rgb, a, dep, cnt, Tf, pairs, leaders, lend, b.pk, b.ranges, b.tile_list, b.box};
+}
+
+// Backward of forward_pixel_v2: each pixel's walk again, then the adjoint back to front. Returns
+// [the gradients as packed [N, S] rows] (split by the caller as backward_v2's). The step records
+// take grid · 256 · (largest per-pixel count) · 32-48 B, at most scratch_budget_bytes (the
+// persistent grid shrinks to fit); reading the largest count synchronises.
+std::vector<at::Tensor> backward_pixel_v2(at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth, at::Tensor alpha_out,
+                                          at::Tensor depth_out, at::Tensor n_contrib, at::Tensor pk, at::Tensor ranges,
+                                          at::Tensor tile_list, at::Tensor box, at::Tensor coefs,
+                                          std::vector<double> intr, at::Tensor background, int64_t n,
+                                          int64_t n_channels, int64_t width, int64_t height, bool use_gef,
+                                          bool use_softmax, int64_t k_max, bool solved, int64_t window, bool patch,
+                                          int64_t scratch_budget_bytes) {
+  check_f32(g_rgb, "grad rgb");
+  check_f32(g_alpha, "grad alpha");
+  check_f32(g_depth, "grad depth");
+  TORCH_CHECK(intr.size() == 4, "intrinsics must be (fx, fy, cx, cy)");
+  const c10::cuda::CUDAGuard guard(pk.device());
+  void* st = c10::cuda::getCurrentCUDAStream().stream();
+  const int W = int(width), H = int(height), nch = int(n_channels);
+  auto f32 = pk.options();
+  Scene sc = make_scene(pk, ranges, tile_list, background, W, H, nch, 0, use_gef, use_softmax, k_max, solved, 1.0,
+                        patch);
+  at::Tensor grad = at::zeros({n, sc.S}, f32);
+  at::Tensor counter = at::zeros({1}, f32.dtype(at::kInt));
+  const int max_cnt = n_contrib.numel() ? int(n_contrib.max().item<int64_t>()) : 0;   // synchronises
+  if (n == 0 || max_cnt == 0) return {grad};
+  const int grid = pixel::backward_grid(sc, max_cnt, scratch_budget_bytes);
+  at::Tensor steps =
+      at::empty({int64_t(grid) * 256 * max_cnt * int64_t(pixel::step_record_floats(nch, use_softmax))}, f32);
+  at::Tensor chan = at::empty({int64_t(bwd_chan_floats(nch, W, H))}, f32);
+  BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(), nullptr,
+           alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(), nullptr, nullptr, n_contrib.data_ptr<int32_t>()};
+  const pixel::PixelIn pin{box.data_ptr<int32_t>(), coefs.data_ptr<float>(), float(intr[0]), float(intr[1]),
+                           float(intr[2]), float(intr[3]), int(window)};
+  pixel::PixelBwdWork work{grad.data_ptr<float>(), steps.data_ptr<float>(), max_cnt, grid, counter.data_ptr<int32_t>(),
+                           chan.numel() ? chan.data_ptr<float>() : nullptr};
+  check(pixel::backward(sc, pin, in, work, st), "per-pixel backward");
+  return {grad};
+}
+
 // {grid, blocks per multiprocessor, head scratch bytes} the backward would use: for the GPU check's
 // report (no launch).
 std::vector<int64_t> backward_plan(int64_t n_channels, int64_t width, int64_t height, bool use_gef, bool use_softmax,
@@ -244,6 +347,18 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("backward_plan", &smgs::cuda::backward_plan, "grid, blocks per SM and head bytes of the v2 backward",
         py::arg("n_channels"), py::arg("width"), py::arg("height"), py::arg("use_gef"), py::arg("use_softmax"),
         py::arg("kmax_eff"), py::arg("head_budget_bytes"));
+  m.def("forward_pixel", &smgs::cuda::forward_pixel_v2, "per-pixel order (re-sorting window), forward",
+        py::arg("means2d"), py::arg("conics"), py::arg("opacities"), py::arg("colors"), py::arg("depths"),
+        py::arg("alpha"), py::arg("beta"), py::arg("gamma"), py::arg("background"), py::arg("coefs"), py::arg("intr"),
+        py::arg("width"), py::arg("height"), py::arg("use_gef"), py::arg("use_softmax"), py::arg("k_max"),
+        py::arg("solved"), py::arg("window"), py::arg("lead_alpha"), py::arg("patch"));
+  m.def("backward_pixel", &smgs::cuda::backward_pixel_v2, "per-pixel order (re-sorting window), backward",
+        py::arg("g_rgb"), py::arg("g_alpha"), py::arg("g_depth"), py::arg("alpha_out"), py::arg("depth_out"),
+        py::arg("n_contrib"), py::arg("pk"), py::arg("ranges"), py::arg("tile_list"), py::arg("box"),
+        py::arg("coefs"), py::arg("intr"), py::arg("background"), py::arg("n"), py::arg("n_channels"),
+        py::arg("width"), py::arg("height"), py::arg("use_gef"), py::arg("use_softmax"), py::arg("k_max"),
+        py::arg("solved"), py::arg("window"), py::arg("patch"), py::arg("scratch_budget_bytes"));
+  m.def("max_window", []() { return pixel::kMaxWindow; }, "the longest re-sorting window of the kernels");
   m.def("layout", []() { return std::vector<int>{P_MX, P_MY, P_CA, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL}; },
         "columns of the packed rows: mx, my, conic a, conic c, opacity, depth, alpha, beta, gamma, first colour");
   m.def("constants", []() {
