@@ -102,7 +102,7 @@ def method_class(name: str) -> type:
     missing = [attr for attr in METHOD_FUNCTIONS if not callable(getattr(cls, attr, None))]
     if missing:
         raise TypeError(f"method {name!r} ({cls!r}) does not implement "
-                        f"{', '.join('Method.' + m for m in missing)} (README, 'Adding a method')")
+                        f"{', '.join('Method.' + m for m in missing)} (docs/adding-a-method.md, 'Adding a method')")
     return cls
 
 
@@ -151,7 +151,7 @@ def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None,
         if not _takes(cls, keyword):
             raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) takes no `{keyword}` "
                             "argument; a method's constructor is __init__(scene, config, *, name, device, run) "
-                            f"and {why} (README, 'Adding a method')")
+                            f"and {why} (docs/adding-a-method.md, 'Adding a method')")
     needs: SceneNeeds = getattr(cls, "needs", SceneNeeds())
     needs.check(scene, name)
     method = cls(scene, resolve_config(name, config), name=name, device=dev, run=run)

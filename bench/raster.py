@@ -19,8 +19,9 @@ stable than absolute times. ``--sorts global per_pixel`` adds each mode in the p
 docs/kmax-scope.md); "within k_max" is then the pixels whose splats all lie in their tile's first
 k_max entries. To compare two source trees of the renderer, see ``bench/ab.py``.
 
-Scenes: ../shared/bench/scene_10k_256.npz and scene_100k_512.npz (see the README there), and random
-scenes made by the same recipe at other sizes (``rand_1m_1600x1000``, 1M splats, only by name). The reference backend is dense (every splat at every
+Scenes: the benchmark scenes 10k_256 and 100k_512 (``scene_10k_256.npz``, ``scene_100k_512.npz`` in
+the shared data folder beside the checkout), and random scenes made by the same recipe
+(``random_scene``) at other sizes (``rand_1m_1600x1000``, 1M splats, only by name). The reference backend is dense (every splat at every
 pixel), so it only runs on scenes of at most ``--reference-max-pairs`` splat-pixel pairs.
 """
 
@@ -58,7 +59,7 @@ LARGE_SCENES = {"rand_1m_1600x1000": (1_000_000, 1600, 1000, 4)}
 
 
 def random_scene(n: int, width: int, height: int, seed: int) -> dict[str, np.ndarray]:
-    """The recipe of ../shared/bench/README.md: Gaussians in the frustum of a pinhole camera at the
+    """The benchmark scenes' recipe: Gaussians in the frustum of a pinhole camera at the
     origin, z ~ U(2, 6), fx = fy = W, σ_px = 2·exp(N(0, 0.25²)) with per-axis jitter U(0.8, 1.25)
     (3σ radius ≈ 7.6 px at any resolution), random unit quaternions, opacities U(0.3, 0.9), RGB U(0, 1)."""
     rng = np.random.default_rng(seed)

@@ -19,8 +19,8 @@ from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config
 
 LOG = "log.txt"
 # Keys of a cell's config that do not change its result (where and how it runs).
-VOLATILE = ("force", "executor", "report", "out_dir", "data_root", "on_missing", "grid", "seeds",
-            "experiment_name", "checkpoint_every", "export_ply", "on_busy")
+VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
+            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 def result_hash(cfg: dict) -> str:

@@ -83,7 +83,7 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
     if cfg.get("report"):
         from protocols.report_step import build_report
 
-        summary["report"] = str(build_report(Path(cfg["out_dir"])))
+        summary["report"] = str(build_report(Path(cfg["out_dir"]), cfg.get("report_builder")))
     return summary
 
 

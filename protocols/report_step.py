@@ -1,35 +1,47 @@
-"""The report as the last step of a run, through its command line (``python -m reports.build``).
+"""The report as the last step of a run: a call in this process to the builder the config names.
 
-protocols sit below reports (smgs <- baselines <- protocols <- reports), so the runner does not
-import the report builder: it runs it as its own program, as a user would after the run.
+protocols sit below reports (smgs <- baselines <- protocols <- reports), so the runner imports no
+report code: ``report_builder`` in configs/config.yaml names it (``module:function``, by default
+``reports.build:build_report``), and the runner looks it up when the sweep ends, as Hydra looks up a
+``_target_``. Any function that takes the runs directory and returns the path of what it wrote fits.
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
+import importlib
+from collections.abc import Callable
 from pathlib import Path
 
-# The folder holding protocols/ and reports/, so the child imports the same tree as this process.
-_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_BUILDER = "reports.build:build_report"
 
 
 class ReportFailed(RuntimeError):
-    """The report builder exited with an error (printed by it on stderr); the runs are unaffected."""
+    """The report builder raised; the runs are recorded and unaffected."""
 
 
-def build_report(runs_dir: Path | str) -> Path:
-    """Build the report of every run below ``runs_dir``; returns the path of report.md."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_ROOT), env.get("PYTHONPATH", "")) if p)
-    cmd = [sys.executable, "-m", "reports.build", str(runs_dir)]
-    done = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, text=True)
-    lines = [ln for ln in done.stdout.splitlines() if ln.startswith("report: ")]
-    if done.returncode != 0 or not lines:
-        raise ReportFailed(f"the report step failed (exit status {done.returncode}; its error is printed above): "
-                           f"{' '.join(cmd)}" + (f"\n{done.stdout}" if done.stdout.strip() else ""))
-    for ln in done.stdout.splitlines():  # the builder's own notes, without its final path line
-        if not ln.startswith("report: "):
-            print(ln, flush=True)
-    return Path(lines[-1][len("report: "):])
+def builder(spec: str | None) -> Callable[[Path], Path | str]:
+    """The function ``spec`` (``module:function``) names; a spec that names none is an error saying
+    what was looked for."""
+    spec = spec or DEFAULT_BUILDER
+    module, sep, name = spec.partition(":")
+    if not sep or not module or not name:
+        raise ValueError(f"report_builder={spec!r}: expected module:function, e.g. {DEFAULT_BUILDER}")
+    try:
+        fn = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"report_builder={spec!r} names no function ({e}); the default is {DEFAULT_BUILDER}, "
+                         "or report=false builds no report") from e
+    if not callable(fn):
+        raise ValueError(f"report_builder={spec!r} is not callable")
+    return fn
+
+
+def build_report(runs_dir: Path | str, spec: str | None = None) -> Path:
+    """Build the report of every run below ``runs_dir`` with the builder ``spec`` names; returns the
+    path of report.md. The builder's error becomes one ``ReportFailed`` line."""
+    fn = builder(spec)
+    try:
+        return Path(fn(Path(runs_dir)))
+    except Exception as e:
+        raise ReportFailed(f"the report step failed ({type(e).__name__}: {e}); the runs are recorded, rebuild "
+                           f"the report with `smgs report {runs_dir}`") from e

@@ -54,8 +54,8 @@ def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
     if not scenes and ds.get("path") not in (None, "???"):
         scenes = [Path(str(ds["path"])).name]  # a dataset given by its folder: the folder's name
     if not scenes:
-        raise ValueError(f"dataset {dataset!r} lists no scenes (configs/dataset/{dataset}.yaml: scenes) "
-                         "and has no dataset.path to name one after")
+        raise ValueError(f"dataset {dataset!r} needs the scene's folder: add dataset.path=/path/to/scene "
+                         f"(configs/dataset/{dataset}.yaml lists no scenes of its own)")
     return [str(s) for s in scenes]
 
 
@@ -94,6 +94,30 @@ def _seed_given(cfg: DictConfig, overrides: list[str]) -> list[int] | None:
     return [n]
 
 
+def grid_datasets(cfg: DictConfig, overrides: list[str]) -> tuple[list[str], list[str] | None]:
+    """The grid's datasets and scene filter. ``dataset=Y`` on the command line runs the experiment's
+    grid (methods, budgets, seeds) on Y alone, with Y's own scenes (a folder given by dataset.path is
+    its one scene), unless ``grid.datasets=`` / ``grid.scenes=`` are given too."""
+    grid = cfg.grid
+    datasets = [str(d) for d in grid.datasets]
+    scenes = None if grid.scenes is None else [str(s) for s in grid.scenes]
+    chosen = _given(overrides, "dataset")
+    if chosen is not None:
+        if _given(overrides, "grid.datasets") is None:
+            datasets = [chosen]
+        if _given(overrides, "grid.scenes") is None:
+            scenes = None
+    return datasets, scenes
+
+
+def check_command_line(args: list[str]) -> str | None:
+    """A command-line mistake Hydra would only answer with its own words: what is wrong and the fix."""
+    if _given(args, "dataset.path") is not None and _given(args, "dataset") is None:
+        return ("dataset.path names a scene folder of the dataset kinds that take one: add dataset=colmap "
+                "(images/ and sparse/0/) or dataset=transforms (transforms.json) before it")
+    return None
+
+
 def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
     """The grid's cells and their payloads (resolved configs and run directories)."""
     from baselines.registry import get_spec
@@ -101,10 +125,11 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
     grid = cfg.grid
     for m in grid.methods:
         get_spec(str(m))  # an unknown method stops here, naming the registered ones
-    datasets = {str(d): _scenes_of(str(d), overrides) for d in grid.datasets}
+    names, scenes = grid_datasets(cfg, overrides)
+    datasets = {d: _scenes_of(d, overrides) for d in names}
     seeds, seeds_of = grid_seeds(cfg, overrides)
     cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds,
-                   None if grid.scenes is None else [str(s) for s in grid.scenes], seeds_of)
+                   scenes, seeds_of)
     try:
         check_path_names(str(cfg.experiment_name), cells)
     except ValueError as e:
@@ -182,6 +207,13 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.validate import validate_payloads
 
     cells, payloads = plan(cfg, overrides)
+    if cfg.report:
+        from protocols.report_step import builder
+
+        try:
+            builder(cfg.get("report_builder"))   # a report_builder that names no function stops here
+        except ValueError as e:
+            raise SystemExit(f"invalid config, nothing was run: {e}") from None
     check_devices(payloads, str(cfg.executor.kind))
     validate_payloads(payloads)
     _preflight(payloads)
@@ -200,7 +232,7 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     if cfg.report:
         from protocols.report_step import build_report
 
-        path = build_report(Path(cfg.out_dir))
+        path = build_report(Path(cfg.out_dir), cfg.get("report_builder"))
         print(f"report: {path}", flush=True)
     return summaries
 
@@ -220,7 +252,7 @@ def failure_message(summaries: list[dict]) -> str | None:
     return f"{failed} of {len(summaries)} run(s) failed (their errors are listed above)" if failed else None
 
 
-@hydra.main(config_path="../configs", config_name="config", version_base="1.3")
+@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")  # absolute: also when imported by the smgs command
 def main(cfg: DictConfig) -> None:
     from protocols.report_step import ReportFailed
 
@@ -244,6 +276,10 @@ def cli() -> None:
     if problem:
         print(f"error: {problem} (it names the folder below the output root; set out_dir=PATH to write "
               "elsewhere)", file=sys.stderr, flush=True)
+        raise SystemExit(2)
+    problem = check_command_line(sys.argv[1:])
+    if problem:
+        print(f"error: {problem}", file=sys.stderr, flush=True)
         raise SystemExit(2)
     signal.signal(signal.SIGTERM, on_sigterm)
     try:

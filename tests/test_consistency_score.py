@@ -19,7 +19,7 @@ W, H = 96, 72
 # Two flat Gaussians in the plane z = 0, overlapping in the middle, red and blue. Orbiting the
 # camera about the y axis swaps their depth order when it crosses θ = 0 (paper Fig. 1): vanilla
 # compositing switches the overlap from one colour to the other, softmax competition (β 5, γ 1,
-# findings.md) blends two coplanar splats independently of their order.
+# docs/studies/popping.md) blends two coplanar splats independently of their order.
 MEANS = torch.tensor([[-0.12, 0.0, 0.0], [0.12, 0.0, 0.0]])
 QUATS = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2)
 SCALES = torch.tensor([[0.3, 0.25, 0.002]] * 2)

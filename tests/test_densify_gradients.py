@@ -1,7 +1,6 @@
 """tools/densify_gradients.py: where splats at different depths compete (γ 0.3 per splat size, the
 earlier default) the same Gaussians put a screen-space gradient on their 2D means that grows with β;
-at the default γ (3) it is 3DGS's at any β (README: "Softmax-GS on real scenes: γ's initial
-value"); with α = 1 at initialisation GEF-only is 3DGS exactly."""
+at the default γ (3) it is 3DGS's at any β (docs/studies/gamma-init.md); with α = 1 at initialisation GEF-only is 3DGS exactly."""
 
 import sys
 from pathlib import Path

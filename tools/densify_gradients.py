@@ -9,7 +9,7 @@ per mode (and, for the softmax modes, per initial β) the median, 90th percentil
 visible splats and the share over the full (2e-4) and 5 % (4e-3) budgets' thresholds. Where splats
 at different depths compete (a long depth decay, γ 0.3 per splat size), the softmax term's gradient
 grows with β and the densifier clones and splits more at the same threshold; at the default γ (3)
-it stays within 5 % of 3DGS's up to β 20 (README: "Softmax-GS on real scenes: γ's initial value").
+it stays within 5 % of 3DGS's up to β 20 (docs/studies/gamma-init.md).
 
 ``--trace STEPS`` follows training instead: each mode trains STEPS steps of the cpu preset's
 full-budget schedule (3000 steps, 3DGS's 30K schedule scaled), and at each refinement prints the

@@ -1,6 +1,6 @@
 """Dataset protocols as data, and ``load_scene``: the one entry point the protocol runner calls.
 
-Resolution rules (shared/research/anchors.md 1.4, 2.5, 3.1, Lessons 4-5):
+Resolution rules (their sources, and why each result records which: docs/usage.md, "Resolution rules"):
 
 - ``paper``  (Softmax-GS): Mip-NeRF360 and T&T resized to width 1600 keeping the aspect ratio, from
   the full-resolution ``images`` with PIL BICUBIC (what 3DGS's ``-r -1`` does); never upsampled, so

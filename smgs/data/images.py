@@ -1,7 +1,7 @@
 """Image reading, resolution rules and resizing shared by the loaders.
 
 Resampling matters for the numbers: JPEG ``images_N`` folders as shipped versus our own downscaling
-of the full-resolution images moves PSNR by 0.3-0.5 dB (shared/research/anchors.md 1.4, 2.5), so
+of the full-resolution images moves PSNR by 0.3-0.5 dB (docs/usage.md, "Resolution rules"), so
 every loader records which one it used (``describe_resampling``).
 """
 

@@ -48,10 +48,9 @@ class GaussianConfig:
       behind; from 1 the gradient was 3DGS's at initialisation (tools/densify_gradients.py), and
       the real-scene rate (8e-3 on log β) moves β where the scene wants within a few hundred
       steps. At γ 3 the gradient no longer depends on β; 1 was chosen at γ 0.3, by measurement
-      among 1, 5 and 20 (README "Softmax-GS on real scenes: β's
-      initial value"). The 2D fits differ: at their rate 3e-4 β can only grow ~x20 in 10K steps,
+      among 1, 5 and 20 (docs/studies/beta-init.md). The 2D fits differ: at their rate 3e-4 β can only grow ~x20 in 10K steps,
       so from 1 or 5 it ends too weak (20-21 dB on circle4), from 1000 it locks in a poor partition
-      (18 dB), from 20 Softmax-GS reaches ~28 dB (shared/research/findings.md).
+      (18 dB), from 20 Softmax-GS reaches ~28 dB (docs/studies/beta-init.md).
     * γ (depth decay) is stored relative to the scene: the renderer receives
       γ_world = γ / extent, so s = exp(-γ·|Δd| / extent) whatever the scene's units.
       ``gamma_unit`` says what its initial value is measured against. "splat" (default): each
@@ -61,8 +60,7 @@ class GaussianConfig:
       apart composite as in 3DGS. Longer decays (0.3: 3.3 sizes, the earlier default) let splats
       at different depths trade pixels from view to view: the training residual stays high, 3DGS's
       densifier clones on it (1.8x 3DGS's Gaussians at the full budget) and the test views lose
-      3-4 dB. Chosen by measurement among 0.1, 0.3, 1 and 3 (README "Softmax-GS on real scenes: γ's
-      initial value"). "extent": γ_world = gamma.init / extent for
+      3-4 dB. Chosen by measurement among 0.1, 0.3, 1 and 3 (docs/studies/gamma-init.md). "extent": γ_world = gamma.init / extent for
       all; with init 1 (the earlier default) the decay length is one scene extent, the front and
       back of an object compete and the back shows through as speckle, and γ's rate (4e-4 on
       log γ) cannot undo that in a 3000-step run. The 2D patterns keep "extent" with init 1
@@ -273,7 +271,7 @@ def pattern_config(mode: str, cap: int, steps: int = 10_000, seed: int = 0) -> T
     """The Table 1 set-up (paper Sec. 4.1, supp. Sec. 6): 4 black identical Gaussians at depth 1,
     densification capped at ``cap``, no opacity reset (hence no size pruning), the pattern
     learning rates, colours not clamped at 0 (a clamp left a dead opaque black splat,
-    findings.md), SH degree 0."""
+    docs/studies/beta-init.md), SH degree 0."""
     return TrainConfig(
         mode=mode, steps=steps, seed=seed,
         gaussians=GaussianConfig(init="flat", max_sh_degree=0, clamp_colors=False, beta=ParamInit(20.0),

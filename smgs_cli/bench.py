@@ -1,0 +1,44 @@
+"""``smgs bench NAME [ARGS...]``: the benchmarks of bench/, run in this process.
+
+bench/ is part of the source checkout, not of the installed packages (it reads benchmark scenes
+beside the checkout and times trees of it), so the command finds it next to the installed sources,
+as ``pip install -e .`` leaves them, and says so where it is missing."""
+
+from __future__ import annotations
+
+import runpy
+import sys
+from pathlib import Path
+
+import protocols
+
+BENCHMARKS = ("raster", "train", "ply", "ab", "report_html")
+
+
+def bench_dir() -> Path:
+    return Path(protocols.__file__).resolve().parents[1] / "bench"
+
+
+def run_bench(args: list[str]) -> int:
+    names = ", ".join(BENCHMARKS)
+    if not args or args[0] in ("-h", "--help"):
+        print(f"usage: smgs bench {{{names.replace(', ', ',')}}} [ARGS...]  (smgs bench NAME --help: its options)")
+        return 0 if args else 2
+    name = args[0].replace("-", "_")
+    script = bench_dir() / f"{name}.py"
+    if name not in BENCHMARKS:
+        print(f"smgs bench: unknown benchmark {args[0]!r}; the benchmarks are {names}", file=sys.stderr)
+        return 2
+    if not script.is_file():
+        print(f"smgs bench: {script} is not there: the benchmarks run from a source checkout "
+              "(git clone, then pip install --no-build-isolation -e .)", file=sys.stderr)
+        return 2
+    saved = sys.argv
+    sys.argv = [str(script), *args[1:]]
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    except SystemExit as e:  # the benchmarks end with sys.exit(main())
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        sys.argv = saved
+    return 0

