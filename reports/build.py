@@ -108,11 +108,11 @@ def _tradeoff_plots(runs: list[RunResult]) -> list[Plot]:
     plots += pareto_plots(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
                           "PSNR against render FPS, one point per method × budget (dataset means as in Table 2; "
                           "one panel per dataset or pattern); the dashed line and rings mark the Pareto front "
-                          "(higher PSNR at higher FPS), per preset.")
+                          "(higher PSNR at higher FPS), per preset; bars: ± sd over seeds.")
     plots += pareto_plots(gs_pts, "psnr_vs_gaussians.png", "#Gaussians", False, True,
                           "PSNR against the number of Gaussians, one point per method × budget (or cap); the "
                           "dashed line and rings mark the Pareto front (higher PSNR with fewer Gaussians), per "
-                          "preset.")
+                          "preset; bars: ± sd over seeds.")
     return plots
 
 

@@ -27,6 +27,7 @@ from reports.paper import (KMAX_COVERAGE, KMAX_COVERAGE_RANGE, dataset_label, da
                            method_label, row_label, scene_rank)
 from reports.plots import Plot, _png, color
 from reports.runs import Value, is_pattern
+from reports.stats import mean_sd
 from reports.table_model import Column, Row, Section, Table, percent, sig
 from reports.tables import Context, row_order
 
@@ -72,9 +73,10 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
     rows = []
     for key in sorted(cells, key=lambda k: (dataset_rank(k[0]), scene_rank(k[0], k[1]), row_order(k[2:]))):
         ds, scene, m, b, p = key
-        rs = cells[key]
-        vals = [_coverage(r) for r in rs]
-        v = Value(sum(vals) / len(vals), None, len(vals))
+        rs = sorted(cells[key], key=lambda r: r.seed)
+        per_seed = tuple((r.seed, _coverage(r)) for r in rs)
+        mean, sd = mean_sd([x for _, x in per_seed])
+        v = Value(mean, sd, len(per_seed), seeds=per_seed)
         label, lnotes = ctx.label((m, b, p), rs)
         if ds == "mipnerf360" and scene in KMAX_COVERAGE:
             kind = "indoor" if KMAX_COVERAGE[scene] > 0.8 else "outdoor"
@@ -93,7 +95,7 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
                     "scenes, ≈70% outdoor; Δ in percentage points. Pixels beyond k_max are composited the "
                     "vanilla way, so low coverage means the softmax acts on fewer pixels.")
     return Table("", ["Dataset", "Scene", "Method"], [col], rows,
-                 ["k_max", "vs paper range"], rank="none"), notes
+                 ["k_max", "vs paper range"], rank="none", seeds=True), notes
 
 
 def param_groups(runs: list[RunResult]) -> dict[tuple, list[dict]]:

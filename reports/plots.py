@@ -220,6 +220,11 @@ def _pareto_panel(ax, panel: str, pts: list[Point], xlabel: str, x_higher_better
         ax.scatter([p.x.mean for p in sub], [p.psnr.mean for p in sub], color=color(m), s=28, zorder=3,
                    marker=MARKERS.get(preset, "^"),
                    label=method_label(m) + ("" if preset == "paper" else f" [{preset}]"))
+        spread = [p for p in sub if p.psnr.std is not None or p.x.std is not None]
+        if spread:  # ± sd over seeds, where a point has two or more
+            ax.errorbar([p.x.mean for p in spread], [p.psnr.mean for p in spread],
+                        yerr=[p.psnr.std or 0.0 for p in spread], xerr=[p.x.std or 0.0 for p in spread],
+                        fmt="none", ecolor=color(m), elinewidth=0.8, capsize=2, zorder=2)
     front_all: list[Point] = []
     for i_p, preset in enumerate(sorted({p.preset for p in pts})):
         sub = [p for p in pts if p.preset == preset]

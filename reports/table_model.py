@@ -184,9 +184,11 @@ class Table:
             return None
         if max(v.n for r in self.rows for v in r.values.values() if v.ok) < 2:
             return ONE_SEED_NOTE
-        return (f"± is the standard deviation over seeds (n = {n} per value unless a footnote says otherwise); "
-                "best / second are marked only where the lead is larger than that spread, a lead inside it is "
-                "a tie.")
+        note = f"± is the standard deviation over seeds (n = {n} per value unless a footnote says otherwise)"
+        if self.rank == "none":
+            return note + "."
+        return note + ("; best / second are marked only where the lead is larger than that spread, a lead inside "
+                       "it is a tie.")
 
     # -- cells (shared by markdown and HTML) -------------------------------------------------
     def grid(self) -> "Grid":

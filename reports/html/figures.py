@@ -145,6 +145,16 @@ def pareto_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
     return figs
 
 
+def _error_bars(pts: list[Point], rgb: str) -> dict:
+    """± sd over seeds on both axes, where any point has one."""
+    out = {}
+    for axis, get in (("error_y", lambda p: p.psnr.std), ("error_x", lambda p: p.x.std)):
+        sds = [get(p) for p in pts]
+        if any(sd is not None for sd in sds):
+            out[axis] = {"type": "data", "array": [sd or 0.0 for sd in sds], "color": rgb, "thickness": 1, "width": 3}
+    return out
+
+
 def _pareto_figure(fid: str, panel: str, pts: list[Point], behind: dict, runs_dir: Path, xlabel: str,
                    higher: bool, what: str) -> Figure:
     pts = sorted(pts, key=lambda p: row_order((p.method, p.budget, p.preset)))
@@ -164,6 +174,7 @@ def _pareto_figure(fid: str, panel: str, pts: list[Point], behind: dict, runs_di
                      "y": [p.psnr.mean for p in sub], "text": [pt(p.label) for p in sub],
                      "textposition": "top right", "textfont": {"size": 9}, **_legend(seen, m),
                      "marker": {"color": color(m), "size": 9, "symbol": SYMBOLS.get(preset, "triangle-up")},
+                     **_error_bars(sub, color(m)),
                      "customdata": custom,
                      "hovertemplate": "run(s) %{customdata[0]}<br>method %{customdata[1]} · budget %{customdata[2]} · "
                                       "seed(s) %{customdata[3]} · preset %{customdata[4]}<br>" + pt(xlabel)
@@ -179,7 +190,7 @@ def _pareto_figure(fid: str, panel: str, pts: list[Point], behind: dict, runs_di
                      "marker": {"size": 14, "color": "rgba(0,0,0,0)", "line": {"color": "black", "width": 1}},
                      "hoverinfo": "skip"})
     caption = (f"PSNR against {xlabel}, one point per method × budget (dataset means as in Table 2; per pattern for "
-               f"the 2D fits); dashed line and rings: the Pareto front ({what}), per preset.")
+               f"the 2D fits); dashed line and rings: the Pareto front ({what}), per preset; bars: ± sd over seeds.")
     return Figure(fid, f"{panel}: PSNR vs {xlabel}", caption, data,
                   _layout(f"{panel}: PSNR vs {xlabel}", xlabel, "PSNR (dB)", log_x=True))
 
