@@ -382,7 +382,12 @@ def rasterize(
     proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
                              fused=False if backend == "reference" else None, view=view, dense=dense)
     ids = proj.ids
-    pick = (lambda t: t) if dense else (lambda t: None if t is None else t[ids])
+    if dense:
+        pick = (lambda t: t)
+    elif device.type == "cpu":   # whole rows copied (t[ids] indexes element by element: ~4x slower here)
+        pick = (lambda t: None if t is None else t.index_select(0, ids))
+    else:
+        pick = (lambda t: None if t is None else t[ids])
     if sh_degree is None:
         colors = pick(colors_or_sh)
     else:
@@ -393,7 +398,7 @@ def rasterize(
             colors = colors.clamp_min(0.0)
     # a culled row of the dense projection reaches no pixel at opacity 0 (every backend skips a
     # splat under 1/255), so it renders as if absent
-    opac = opacities * proj.visible if dense else opacities[ids]
+    opac = opacities * proj.visible if dense else pick(opacities)
     means2d = proj.means2d
     rd = ray_depth(means3d[ids], quats[ids], scales[ids], camera) if sort == "per_pixel" else None
     out = _rasterize_splats(means2d, proj.conics, opac, colors, proj.depths, pick(alpha), pick(beta), pick(gamma),
