@@ -18,7 +18,7 @@ from smgs.camera import Camera
 from smgs.data.scene import Scene
 from smgs.device import resolve_device
 from smgs.raster import RenderOutput
-from smgs.io.atomic import atomic_write_bytes
+from smgs.atomic import atomic_write_bytes
 from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
                                splats_from_trainer, train_overrides)
 from smgs.io.ply import PlySplats, read_ply, write_ply

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from smgs.io.atomic import atomic_write_text
+from smgs.atomic import atomic_write_text
 
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"

@@ -26,7 +26,7 @@ from protocols.results import POINTER, CurvePoint, RunResult
 from protocols.run_settings import run_settings
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
-from smgs.io.atomic import atomic_write_bytes, atomic_write_text
+from smgs.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
 from smgs.metrics.timing import TrainClock, device_name, measure_render_fps, track_peak_memory

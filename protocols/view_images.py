@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from smgs.io.atomic import atomic_write_bytes, atomic_write_text
+from smgs.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.image import ERROR_MAP_VMAX, abs_error_map, to_uint8
 
 STRIP_TILE_WIDTH = 192

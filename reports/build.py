@@ -25,7 +25,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from protocols.results import RunResult
-from smgs.io.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
+from smgs.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
 from reports.diagnostics import diagnostics_section
 from reports.environment import environment_markdown
 from reports.html import html_report
@@ -244,7 +244,7 @@ def _cell(v: object) -> object:
 
 def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     """The whole report is written into a new folder beside ``out`` and switched in for the old one
-    at the end (``smgs.io.atomic.replace_dir``): a build that fails (a full disk, an error) leaves
+    at the end (``smgs.atomic.replace_dir``): a build that fails (a full disk, an error) leaves
     the previous report as it was, never new tables beside an old report.md. Files of the old
     folder that the report does not write (the user's own) are carried over; those of our own that
     the previous build listed in its manifest and this one does not produce are not."""

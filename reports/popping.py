@@ -20,7 +20,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from protocols.results import RunResult
-from smgs.io.atomic import atomic_write_bytes, atomic_write_text
+from smgs.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.consistency.popping import POP_METHODS, PopResult, flip_scenes, orbit_path, popping_table
 from reports.plots import Plot
 from reports.runs import Value

@@ -12,6 +12,5 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from smgs.camera import Camera
 from smgs.raster import MODES, RenderOutput, rasterize, rasterize_splats
-
-__version__ = "0.1.0"
+from smgs.version import __version__
 __all__ = ["Camera", "rasterize", "rasterize_splats", "RenderOutput", "MODES", "__version__"]

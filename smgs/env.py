@@ -47,8 +47,8 @@ def versions(backend: str, device: str) -> dict[str, str]:
     """What a result records about where it was computed."""
     import numpy
 
-    import smgs
+    from smgs.version import __version__
 
-    return {"smgs": smgs.__version__, "torch": torch.__version__, "numpy": numpy.__version__,
+    return {"smgs": __version__, "torch": torch.__version__, "numpy": numpy.__version__,
             "python": platform.python_version(), "backend": backend, "device": device,
             "cpu": cpu_model(), "gpu": gpu_model(), "git": git_revision()}

@@ -13,7 +13,7 @@ from PIL import Image
 from protocols.run import run_experiment
 from smgs.data import SceneFormatError
 from smgs.data.transforms import load_transforms
-from smgs.io.atomic import atomic_write_text
+from smgs.atomic import atomic_write_text
 
 
 def _scene(root, n=3):

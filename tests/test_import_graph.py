@@ -1,5 +1,7 @@
-"""The layering smgs <- baselines <- protocols <- reports holds and no modules import each other in a
-circle (tools/import_graph.py, every import counted, lazy ones too)."""
+"""The layering smgs <- baselines <- protocols <- reports <- smgs_cli holds, inside smgs too
+(tools/import_graph.py's SMGS_LAYERS: base helpers, renderer, data, metrics, training, model files,
+the package front), and no modules import each other in a circle (every import counted, lazy ones
+too)."""
 
 import subprocess
 import sys
@@ -25,10 +27,26 @@ def test_the_tool_finds_a_wrong_way_edge_and_a_cycle(tmp_path):
     (tmp_path / "smgs" / "b.py").write_text("from smgs import a\ng = 1\n")
     (tmp_path / "protocols" / "run.py").write_text("import reports.build\n")
     (tmp_path / "reports" / "build.py").write_text("from ..protocols import run\n")
-    _, wrong, cycles = import_graph.report(tmp_path)
+    _, wrong, cycles = import_graph.report(tmp_path, smgs_layers=(("smgs", "smgs.a", "smgs.b"),))
     assert wrong == [("protocols.run", "reports.build")]
     assert cycles == [["protocols.run", "reports.build"], ["smgs.a", "smgs.b"]]
     done = subprocess.run([sys.executable, str(ROOT / "tools" / "import_graph.py"), str(tmp_path)],
                           capture_output=True, text=True)
     assert done.returncode == 1
     assert "  protocols.run -> reports.build\n" in done.stdout
+
+
+def test_inside_smgs_an_import_from_a_lower_group_to_a_higher_one_is_wrong(tmp_path):
+    for pkg in [*import_graph.LAYERS, "smgs/raster", "smgs/train"]:
+        (tmp_path / pkg).mkdir(exist_ok=True)
+        (tmp_path / pkg / "__init__.py").write_text("")
+    (tmp_path / "smgs" / "atomic.py").write_text("")
+    (tmp_path / "smgs" / "stray.py").write_text("")
+    (tmp_path / "smgs" / "raster" / "api.py").write_text("import smgs.atomic\n")
+    (tmp_path / "smgs" / "train" / "trainer.py").write_text("from smgs.raster import api\n")
+    (tmp_path / "smgs" / "raster" / "cache.py").write_text("def f():\n    from smgs.train.trainer import x\n")
+    (tmp_path / "smgs" / "__init__.py").write_text("from smgs.train import trainer\n")
+    _, wrong, _ = import_graph.report(tmp_path)
+    assert wrong == [("smgs.raster.cache", "smgs.train.trainer"), ("smgs.stray", import_graph.UNPLACED)]
+    assert import_graph.group_of("smgs", import_graph.SMGS_LAYERS) == len(import_graph.SMGS_LAYERS) - 1
+    assert import_graph.group_of("smgs.raster.csrc", import_graph.SMGS_LAYERS) == 1

@@ -9,7 +9,7 @@ import stat
 import pytest
 
 from protocols.results import RunResult, write_result
-from smgs.io.atomic import atomic_write_text
+from smgs.atomic import atomic_write_text
 from reports.build import MANIFEST, build_report
 
 PAYLOAD = "<img src=x onerror=alert(1)> [click](http://evil.example) `code` a|b"

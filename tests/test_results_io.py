@@ -18,7 +18,7 @@ def test_interrupted_write_keeps_previous(tmp_path, monkeypatch):
     r = RunResult(method="3dgs", dataset="d", scene="s", budget="full", seed=0)
     p = write_result(tmp_path, r)
     before = p.read_text()
-    import smgs.io.atomic as pr
+    import smgs.atomic as pr
 
     def boom(*a, **k):
         raise KeyboardInterrupt

@@ -3,9 +3,9 @@
     python tools/import_graph.py [ROOT]
 
 Prints the package-level edges (importer -> imported, with the count of module imports behind each),
-then every edge that runs against smgs <- baselines <- protocols <- reports <- smgs_cli and every cycle among
-modules; exits 1 if there is either. Every import counts, also one inside a function: a lazy import
-is still a dependency.
+then every edge that runs against smgs <- baselines <- protocols <- reports <- smgs_cli, or inside
+smgs against SMGS_LAYERS, and every cycle among modules; exits 1 if there is any. Every import
+counts, also one inside a function: a lazy import is still a dependency.
 """
 
 from __future__ import annotations
@@ -16,6 +16,22 @@ from collections import Counter
 from pathlib import Path
 
 LAYERS = ("smgs", "baselines", "protocols", "reports", "smgs_cli")  # each may import only those before it
+
+# Inside smgs, each group may import its own and those before it: plain helpers that import no other
+# smgs module (version, env, atomic writes, the device setting, the camera), then the renderer, the
+# scenes, the metrics, training, model files (the PLY and its mapping onto the trainer), and the
+# package's front (smgs/__init__.py, the demo). A dotted name covers its package and submodules;
+# "smgs" is the package's own __init__ only. A module in no group is reported, to be placed.
+SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera"),
+    ("smgs.raster",),
+    ("smgs.data",),
+    ("smgs.metrics",),
+    ("smgs.train",),
+    ("smgs.io",),
+    ("smgs.demo", "smgs"),
+)
+UNPLACED = "(no group of SMGS_LAYERS)"
 
 
 def modules(root: Path) -> dict[str, Path]:
@@ -97,17 +113,33 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return sorted(found)
 
 
-def report(root: Path) -> tuple[list[str], list[tuple[str, str]], list[list[str]]]:
-    """(printable package edges, wrong-way module edges, cycles)."""
+def group_of(module: str, layers: tuple[tuple[str, ...], ...]) -> int | None:
+    """The index of the group of ``layers`` that holds ``module`` (the longest name that covers it)."""
+    best, found = -1, None
+    for i, group in enumerate(layers):
+        for name in group:
+            covers = module == name or ("." in name and module.startswith(name + "."))
+            if covers and len(name) > best:
+                best, found = len(name), i
+    return found
+
+
+def report(root: Path, smgs_layers: tuple[tuple[str, ...], ...] = SMGS_LAYERS
+           ) -> tuple[list[str], list[tuple[str, str]], list[list[str]]]:
+    """(printable package edges, wrong-way module edges, cycles). An smgs module in no group of
+    ``smgs_layers`` is a wrong edge to ``UNPLACED``."""
     known = modules(root)
     graph = {m: imports(m, p, known) for m, p in known.items()}
     pkg_edges = Counter((a.split(".")[0], b.split(".")[0]) for a, bs in graph.items() for b in bs
                         if a.split(".")[0] != b.split(".")[0])
     lines = [f"{a} -> {b} ({n})" for (a, b), n in sorted(pkg_edges.items())]
     rank = {p: i for i, p in enumerate(LAYERS)}
-    wrong = sorted((a, b) for a, bs in graph.items() for b in bs
-                   if rank[b.split(".")[0]] > rank[a.split(".")[0]])
-    return lines, wrong, cycles(graph)
+    wrong = [(a, b) for a, bs in graph.items() for b in bs if rank[b.split(".")[0]] > rank[a.split(".")[0]]]
+    inner = {m: group_of(m, smgs_layers) for m in graph if m.split(".")[0] == "smgs"}
+    wrong += [(m, UNPLACED) for m, g in inner.items() if g is None]
+    wrong += [(a, b) for a, bs in graph.items() if a in inner for b in bs
+              if b in inner and None not in (inner[a], inner[b]) and inner[b] > inner[a]]
+    return lines, sorted(wrong), cycles(graph)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -116,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     lines, wrong, cyc = report(root)
     print("package edges (importer -> imported (module imports)):")
     print("\n".join(f"  {x}" for x in lines))
-    print(f"wrong-way edges (against {' <- '.join(LAYERS)}): {len(wrong)}")
+    print(f"wrong-way edges (against {' <- '.join(LAYERS)}, and SMGS_LAYERS inside smgs): {len(wrong)}")
     for a, b in wrong:
         print(f"  {a} -> {b}")
     print(f"module cycles: {len(cyc)}")

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.io.atomic import atomic_write_text
+from smgs.atomic import atomic_write_text
 
 TRAJECTORY_FORMAT = "smgs-trajectory-v1"
 

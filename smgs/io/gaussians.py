@@ -16,13 +16,13 @@ from typing import Any
 import numpy as np
 import torch
 
-import smgs
 from smgs.io.ply import EXTRAS, PlyFormatError, PlySplats
 from smgs.raster import mode_flags
 from smgs.raster.sh import num_sh_bases
 from smgs.train.config import GaussianConfig
 from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer, active_sh_degree
+from smgs.version import __version__
 
 # PLY extra -> (Gaussians parameter group, GaussianConfig field)
 _EXTRA_PARAM = {"gef_alpha": "alpha", "softmax_beta": "beta", "softmax_gamma": "gamma"}
@@ -45,7 +45,7 @@ def splats_from_state(state: dict[str, Any]) -> PlySplats:
     gcfg = cfg["gaussians"]
     extras = {e: _np(raw[p]) for e, p in _EXTRA_PARAM.items()
               if (use_gef if p == "alpha" else use_softmax)}
-    meta = {"version": smgs.__version__, "mode": mode, "step": str(int(state["step"])),
+    meta = {"version": __version__, "mode": mode, "step": str(int(state["step"])),
             "extent": repr(float(state["extent"])), "k_max": str(int(cfg["k_max"])), "eq15": str(cfg["eq15"]),
             "t_min": repr(float(cfg["t_min"])), "clamp_colors": str(bool(gcfg["clamp_colors"])).lower()}
     for e in extras:

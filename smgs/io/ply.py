@@ -36,7 +36,7 @@ import numpy as np
 import plyfile
 from numpy.lib.recfunctions import structured_to_unstructured
 
-from smgs.io.atomic import atomic_file
+from smgs.atomic import atomic_file
 
 EXTRAS: tuple[str, ...] = ("gef_alpha", "softmax_beta", "softmax_gamma")
 """The Softmax-GS extra properties (raw, pre-activation values)."""

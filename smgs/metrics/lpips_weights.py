@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from smgs.io.atomic import atomic_file, atomic_write_text
+from smgs.atomic import atomic_file, atomic_write_text
 from smgs.metrics.lpips import LPIPS, NETS, WEIGHTS_ENV, WEIGHTS_FORMAT, find_weights, weights_filename
 from smgs.metrics.result import Missing
 

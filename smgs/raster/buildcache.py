@@ -32,7 +32,7 @@ from typing import Callable
 
 import torch
 
-from smgs.io.atomic import atomic_write_text
+from smgs.atomic import atomic_write_text
 from smgs.raster.buildlock import BuildLock
 
 log = logging.getLogger(__name__)
