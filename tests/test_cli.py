@@ -87,6 +87,9 @@ def test_bench_runs_a_benchmark_of_the_checkout(tmp_path, capsys):
     assert main(["bench", "ply", "--n", "2000", "--degree", "0", "--repeats", "1", "--dir", str(tmp_path)]) == 0
     assert "2000" in capsys.readouterr().out
     assert main(["bench", "nope"]) == 2
+    assert main(["bench"]) == 2
+    listed = capsys.readouterr().out.split("benchmarks: ")[1].split(", ")
+    assert {"raster", "train", "ply"} <= {n.strip() for n in listed}
 
 
 def test_popping_writes_its_tables(tmp_path):
