@@ -194,7 +194,7 @@ def test_the_check_catches_a_tensor_made_without_a_device():
 def test_the_check_catches_the_strategy_statistics_as_they_were(monkeypatch):
     """The densification statistics before the device was passed (``torch.zeros(n)``): the check
     fails on them, naming the line."""
-    from smgs.train.strategy import DefaultStrategy
+    from smgs.train.strategies import DefaultStrategy
 
     def old_reset(self, n):
         self.grad2d = torch.zeros(n)

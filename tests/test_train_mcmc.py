@@ -11,10 +11,10 @@ from smgs.data.patterns import pattern_scene
 from smgs.raster import rasterize
 from smgs.raster.projection import quat_to_rotmat
 from smgs.train import GaussianConfig, Gaussians, TrainConfig, densify_config, from_dict, pattern_config, to_dict
-from smgs.train.mcmc import MCMCStrategy, noise_gate, position_noise, relocation
+from smgs.train.strategies.mcmc import MCMCStrategy, noise_gate, position_noise, relocation
 from smgs.train.optim import GaussianOptimizer
 from smgs.train.strategies import make_strategy
-from smgs.train.strategy import DefaultStrategy
+from smgs.train.strategies import DefaultStrategy
 from smgs.train.trainer import Trainer
 
 F64 = torch.float64

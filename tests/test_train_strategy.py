@@ -5,7 +5,7 @@ import torch
 from smgs.train import GaussianConfig, densify_config, hparams
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, inverse_sigmoid
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
+from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
 
 EXTENT = 2.0
 

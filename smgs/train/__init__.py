@@ -5,7 +5,7 @@ from smgs.train.config import (BUDGETS, HPARAMS, DensifyConfig, GaussianConfig, 
                                to_dict)
 from smgs.train.gaussians import PARAM_NAMES, Gaussians
 from smgs.train.optim import GaussianOptimizer, expon_lr
-from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
+from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
 from smgs.train.trainer import NonFiniteError, Trainer
 
 __all__ = ["TrainConfig", "GaussianConfig", "OptimConfig", "LossConfig", "DensifyConfig", "ParamInit",

@@ -183,7 +183,7 @@ class DensifyConfig:
     the Softmax-GS variants).
 
     ``strategy`` picks the densification strategy (``smgs.train.strategies``): "default" (the
-    above) or "mcmc" (Kheradmand et al. 2024, ``smgs.train.mcmc``), which reads ``cap`` as its
+    above) or "mcmc" (Kheradmand et al. 2024, ``smgs.train.strategies.mcmc``), which reads ``cap`` as its
     ``cap_max``, the refinement schedule, ``prune_opacity`` as the dead-Gaussian threshold and the
     ``mcmc_*`` fields; it ignores the gradient, clone/split, pruning and reset fields.
     """

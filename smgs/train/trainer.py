@@ -29,7 +29,7 @@ from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
 from smgs.train.image_loss import PhotometricLoss, ray_variance
 from smgs.train.optim import GaussianOptimizer
 from smgs.train.strategies import make_strategy
-from smgs.train.strategy import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
+from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,6 @@ then prune the transparent ones (opacity < 0.005) and, after the first opacity r
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from smgs.device import generator_state, restore_generator
@@ -21,6 +19,7 @@ from smgs.raster.projection import quat_to_rotmat
 from smgs.train.config import DensifyConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, inverse_sigmoid
 from smgs.train.optim import GaussianOptimizer
+from smgs.train.strategies.base import RefineEvent
 
 SIZE_PRUNE_3DGS = 0.1
 """3DGS prunes Gaussians whose largest scale exceeds 0.1 × the scene extent."""
@@ -29,28 +28,12 @@ SIZE_PRUNE_SOFTMAX_GS = 0.4
 """Softmax-GS raises that threshold to 0.4 × extent (paper Sec. 4.2)."""
 
 
-@dataclass
-class RefineEvent:
-    """What one refinement step did (0s when nothing happened)."""
-
-    cloned: int = 0
-    split: int = 0
-    pruned: int = 0
-    reset: bool = False
-    capped: int = 0          # candidates dropped because of the cap
-    relocated: int = 0       # MCMC: dead Gaussians moved onto live ones
-    added: int = 0           # MCMC: Gaussians added by growth
-
-    def changed(self) -> bool:
-        return bool(self.cloned or self.split or self.pruned or self.reset or self.relocated or self.added)
-
-
 class DefaultStrategy:
     """Clone / split / prune / opacity reset over a ``Gaussians`` and its ``GaussianOptimizer``.
 
     ``size_prune`` is the resolved world-space size threshold (relative to the extent); ``device``
     the run's device (statistics and the split samples' generator live there).
-    Implements ``smgs.train.strategies.Strategy``.
+    Implements ``smgs.train.strategies.base.Strategy``.
     """
 
     kind = "default"

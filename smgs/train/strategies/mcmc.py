@@ -26,7 +26,7 @@ from smgs.raster.projection import quat_to_rotmat
 from smgs.train.config import DensifyConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategy import RefineEvent
+from smgs.train.strategies.base import RefineEvent
 
 N_MAX = 51
 """Largest number of Gaussians one source becomes in one relocation (gsplat's table size); a
