@@ -26,6 +26,7 @@ What changed from nerfbaselines, and why:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Protocol, runtime_checkable
@@ -72,11 +73,17 @@ class RunSettings:
     steps: int                       # train_step is called this many times
     seed: int
     budget: str                      # the budget's name: full, light, mini, 5pct, cap16, mcmc_256, ...
-    preset: str                      # its kind: full | light | mini | 5pct | cap | mcmc
+    budget_kind: str                 # its kind: full | light | mini | 5pct | cap | mcmc
     grad_threshold: float | None     # the densification gradient threshold that defines it (None: MCMC)
     cap: int | None                  # a hard maximum number of primitives (None: none)
     schedule_steps: int | None       # the run length the protocol's schedules are written for (None: keep the method's)
     backend: str = "auto"            # the renderer backend asked for (auto | cpu | cuda | reference)
+
+    @property
+    def preset(self) -> str:
+        """The budget's kind under its earlier name; ``budget_kind`` is the one to read."""
+        warnings.warn("RunSettings.preset is RunSettings.budget_kind now", DeprecationWarning, stacklevel=2)
+        return self.budget_kind
 
 
 # What the registry checks a method class for before creating it.

@@ -17,7 +17,7 @@ def train_config(config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
     overrides), then the run's step count, seed, backend and budget."""
     mc = merge_config(config, {})
     densify = dict(mc.get("densify") or {})
-    densify.update(budget=run.preset)
+    densify.update(budget=run.budget_kind)
     if run.grad_threshold is not None:   # MCMC budgets have none
         densify["grow_grad2d"] = run.grad_threshold
     if run.cap is not None:

@@ -16,6 +16,7 @@ from smgs.env import versions
 from protocols.cell_lock import cell_lock
 from protocols.live_cells import live_cell
 from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config_hash, read_result, write_result
+from protocols.sections import BudgetConfig
 
 LOG = "log.txt"
 # Keys of a cell's config that do not change its result (where and how it runs).
@@ -28,6 +29,11 @@ def result_hash(cfg: dict) -> str:
     complete settings where it gives them (``baselines.method.ResolvedSettings``), so that a
     changed default retrains instead of reusing a result computed under the old one."""
     ident = {k: v for k, v in cfg.items() if k not in VOLATILE}
+    if isinstance(cfg.get("budget"), dict):
+        try:
+            ident["budget"] = BudgetConfig.of(cfg).identity()
+        except (TypeError, ValueError):   # refused before any cell runs (protocols.validate)
+            pass
     resolved = _resolved_settings(cfg)
     if resolved is not None:
         ident["resolved_settings"] = resolved

@@ -23,6 +23,6 @@ def run_settings(cfg: dict) -> RunSettings:
     budget, protocol = BudgetConfig.of(cfg), ProtocolConfig.of(cfg)
     own_steps = cfg["dataset"].get("steps")
     return RunSettings(steps=int(own_steps or protocol.steps), seed=int(cfg["seed"]), budget=budget.name,
-                       preset=budget.kind, grad_threshold=budget.densify_grad_threshold, cap=budget.cap,
+                       budget_kind=str(budget.kind), grad_threshold=budget.grad_threshold, cap=budget.cap,
                        schedule_steps=None if own_steps else protocol.schedule_steps,
                        backend=cfg.get("backend", "auto"))

@@ -2,7 +2,8 @@
 once from the resolved config (the method's training section is ``smgs.train.TrainConfig``).
 
 Their values live in one place, the YAML (``configs/config.yaml``, ``configs/protocol/``,
-``configs/budget/``, with what each means); the experiments override some. Here are the names and
+``configs/budget/``, with what each means); the experiments override some. A budget's YAML names its
+kind; what the kind sets (its gradient threshold) lives in ``smgs.train.config.BUDGETS``. Here are the names and
 types, and a default only for a key that some of the YAML files leave out. A key missing, unknown
 or of the wrong type is an error naming it (``protocols.validate`` reports it before any cell runs).
 """
@@ -12,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from smgs.train.config import from_dict
+from smgs.train.config import BUDGETS, budget_threshold, from_dict
 
 
 @dataclass(frozen=True)
@@ -54,15 +55,36 @@ class ProtocolConfig:
 
 @dataclass(frozen=True)
 class BudgetConfig:
+    """A budget: its name (a folder of every run), its kind (what densification it sets,
+    ``smgs.train.config.BUDGETS``) and its cap. The gradient threshold is the kind's unless
+    ``densify_grad_threshold`` overrides it (``+budget.densify_grad_threshold=X``)."""
+
     name: str                                # full, light, mini, 5pct, cap16, mcmc_256, pretrained, ...
-    densify_grad_threshold: float | None     # None: MCMC (no gradient threshold)
     cap: int | None
-    preset: str | None = None                # its kind where the name is not one (cap16 -> cap)
+    kind: str | None = None                  # full | light | mini | 5pct | cap | mcmc; None: the name
+    densify_grad_threshold: float | None = None
+
+    def __post_init__(self) -> None:
+        kind = self.kind or self.name
+        if kind not in BUDGETS:
+            raise ValueError(f"budget {self.name!r}: unknown kind {kind!r} (budget.kind); known: {', '.join(BUDGETS)}")
+        object.__setattr__(self, "kind", kind)
 
     @property
-    def kind(self) -> str:
-        return self.preset or self.name
+    def grad_threshold(self) -> float | None:
+        """The densification gradient threshold that defines this budget (None: MCMC)."""
+        own = budget_threshold(str(self.kind))
+        return own if self.densify_grad_threshold is None or own is None else float(self.densify_grad_threshold)
 
     @classmethod
     def of(cls, cfg: dict[str, Any]) -> "BudgetConfig":
         return from_dict(cls, cfg.get("budget"), _where="budget")
+
+    def identity(self) -> dict[str, Any]:
+        """What defines the budget's result, in the form results were hashed with before the kind had
+        its one name (``preset`` in the YAML then) and the threshold its one home: renaming them kept
+        every finished result valid."""
+        out: dict[str, Any] = {"name": self.name, "densify_grad_threshold": self.grad_threshold, "cap": self.cap}
+        if self.kind != self.name:
+            out["preset"] = self.kind
+        return out

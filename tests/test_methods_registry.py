@@ -55,7 +55,7 @@ PLUGIN = textwrap.dedent('''
         def describe(self):
             r = self.run
             plan = [] if r is None else [f"asked: {r.steps} steps, seed {r.seed}, budget {r.budget} "
-                                         f"({r.preset}), cap {r.cap}, schedule {r.schedule_steps}"]
+                                         f"({r.budget_kind}), cap {r.cap}, schedule {r.schedule_steps}"]
             return {"method": self.name, "config": self.config, "hparams": "toy", "step": 0, "plan": plan}
 ''')
 

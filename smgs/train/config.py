@@ -2,7 +2,7 @@
 turn into these with ``from_dict``).
 
 Two named hyperparameter sets (``HPARAMS``) pin the learning rates; the set's name is recorded with
-every run. Densification budgets are presets (``BUDGETS``).
+every run. Densification budgets are kinds (``BUDGETS``: what each sets, its gradient threshold the one home of it).
 """
 
 from __future__ import annotations
@@ -213,6 +213,8 @@ class DensifyConfig:
     mcmc_scale_reg: float = 0.01
 
 
+# The budget kinds and what each sets: the one home of the paper's gradient thresholds (configs/budget/
+# names a kind; protocols read the threshold here).
 BUDGETS: dict[str, dict[str, Any]] = {
     "full": dict(grow_grad2d=2e-4),       # 3DGS default
     "light": dict(grow_grad2d=3e-4),      # Softmax-GS_light
@@ -222,6 +224,15 @@ BUDGETS: dict[str, dict[str, Any]] = {
     # 3DGS-MCMC at a hard cap (set ``cap``): refinement 500..25K every 100 (paper, gsplat), no reset.
     "mcmc": dict(strategy="mcmc", refine_stop=25_000, reset_every=None),
 }
+
+
+def budget_threshold(kind: str) -> float | None:
+    """The densification gradient threshold that defines budget ``kind`` (None for MCMC, which
+    refines by opacity)."""
+    if kind not in BUDGETS:
+        raise ValueError(f"unknown budget kind {kind!r}; known: {', '.join(BUDGETS)}")
+    spec = BUDGETS[kind]
+    return None if spec.get("strategy") == "mcmc" else float(spec.get("grow_grad2d", DensifyConfig.grow_grad2d))
 
 
 def densify_config(budget: str = "full", **overrides: Any) -> DensifyConfig:
