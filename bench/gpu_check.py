@@ -28,6 +28,7 @@ import datetime as dt
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -73,8 +74,9 @@ def setup_environment(shared: Path | None) -> Path | None:
     return shared
 
 
-def stage_command(name: str, args: argparse.Namespace) -> list[str]:
-    cmd = [sys.executable, "-m", "bench.gpu_check", "--stage", name, "--out", str(args.out), "--device", args.device]
+def stage_command(name: str, args: argparse.Namespace, timeout: float) -> list[str]:
+    cmd = [sys.executable, "-m", "bench.gpu_check", "--stage", name, "--out", str(args.out), "--device", args.device,
+           "--stage-deadline", f"{timeout:.0f}"]
     if args.tiny:
         cmd.append("--tiny")
     if args.shared:
@@ -91,11 +93,15 @@ def run_stage(name: str, args: argparse.Namespace, timeout: float) -> StageRun:
     path.unlink(missing_ok=True)
     log = (out / "logs" / f"{name}.log").open("w")
     t0 = time.perf_counter()
+    # its own process group: at the deadline the stage goes with everything it started (pytest,
+    # the training runs), so nothing of it keeps the GPU from the next stage
+    proc = subprocess.Popen(stage_command(name, args, timeout), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
     try:
-        proc = subprocess.run(stage_command(name, args), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
-                              timeout=timeout)
-        rc, timed_out = proc.returncode, False
+        rc, timed_out = proc.wait(timeout=timeout), False
     except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
         rc, timed_out = None, True
     finally:
         log.close()
@@ -127,7 +133,8 @@ def stage_main(args: argparse.Namespace) -> int:
         tmp.replace(path)
 
     ctx = Context(out=out, device=args.device, tiny=args.tiny, shared=args.shared, save=save,
-                  pytest_args=tuple(args.pytest_args or ()))
+                  pytest_args=tuple(args.pytest_args or ()),
+                  ends_at=time.monotonic() + (args.stage_deadline or DEADLINES[args.stage]))
     save(STAGES[args.stage](ctx), complete=True)
     return 0
 
@@ -165,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="cpu: run the stages' code on the CPU (the check's own test)")
     ap.add_argument("--tiny", action="store_true", help="tiny scenes and runs (the check's own test)")
     ap.add_argument("--stage", help=argparse.SUPPRESS)
+    ap.add_argument("--stage-deadline", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--pytest-arg", dest="pytest_args", action="append", help="arguments for pytest -m gpu "
                     "instead of the whole tests folder (repeatable)")
     args = ap.parse_args(argv)

@@ -57,7 +57,9 @@ def _build(r: dict) -> list[str]:
 
 def _pytest(r: dict) -> list[str]:
     lines = [f"- exit code {r.get('rc')}, {r.get('seconds')} s: {r.get('tests')} tests, {r.get('failures')} failed, "
-             f"{r.get('errors')} errors, {r.get('skipped_tests')} skipped", f"- summary: `{r.get('summary', '')[-200:]}`"]
+             f"{r.get('errors')} errors, {r.get('skipped_tests')} skipped",
+             f"- from the log: {r.get('passed_so_far')} passed, {r.get('failed_so_far')} failed or errors "
+             "(the counts so far where the stage was cut)", f"- last line: `{r.get('summary', '')[-200:]}`"]
     lines += [f"- failed: `{t}`" for t in r.get("failed", [])]
     return lines + [""]
 

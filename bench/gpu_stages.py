@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import json
 import math
 import os
@@ -67,6 +68,12 @@ class Context:
     shared: Path | None = None      # the folder with bench/ and data/fox (../shared or the bundle's)
     save: Callable[[dict], None] = lambda partial: None
     pytest_args: tuple[str, ...] = ()
+    ends_at: float = float("inf")   # time.monotonic() of the stage's deadline
+
+    def left(self, margin: float = 10.0) -> float | None:
+        """Seconds a child process may take and still leave the stage ``margin`` to collect what it
+        did (None: no deadline)."""
+        return None if math.isinf(self.ends_at) else max(1.0, self.ends_at - time.monotonic() - margin)
 
 
 def no_gpu_reason(ctx: Context) -> str | None:
@@ -186,17 +193,36 @@ def run_build(ctx: Context) -> dict:
 
 # -- pytest -m gpu ---------------------------------------------------------------------------------
 
+# the renderer's tests first: if the stage runs out of time, the training ones are what is left out
+GPU_TEST_ORDER = ("test_raster_cuda.py", "test_raster_projection_cuda.py", "test_raster_cuda_v2.py",
+                  "test_raster_quad.py", "test_raster_input_checks.py", "test_device_gpu.py")
+
+
+def gpu_test_files() -> list[str]:
+    marked = sorted(p.name for p in (ROOT / "tests").glob("test_*.py") if "mark.gpu" in p.read_text())
+    first = [n for n in GPU_TEST_ORDER if n in marked]
+    return [f"tests/{n}" for n in first + [n for n in marked if n not in first]]
+
+
 def run_pytest(ctx: Context) -> dict:
-    """``pytest -m gpu`` (all of it, or ``ctx.pytest_args``), with its junit report parsed."""
-    xml = ctx.out / "pytest-gpu.xml"
-    args = [sys.executable, "-m", "pytest", "-m", "gpu", "-q", "-p", "no:cacheprovider", f"--junitxml={xml}",
-            *(ctx.pytest_args or ("tests",))]
+    """``pytest -m gpu`` (the files with GPU tests, the renderer's first; or ``ctx.pytest_args``),
+    its junit report parsed; cut short by the stage's deadline, what the log shows so far."""
+    xml, log = ctx.out / "pytest-gpu.xml", ctx.out / "pytest-gpu.log"
+    args = [sys.executable, "-m", "pytest", "-m", "gpu", "-v", "-p", "no:cacheprovider", f"--junitxml={xml}",
+            *(ctx.pytest_args or gpu_test_files())]
+    if importlib.util.find_spec("pytest_timeout"):
+        args.append("--timeout=150")   # one hung test does not take the whole stage
     t0 = time.perf_counter()
-    proc = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
-    (ctx.out / "pytest-gpu.log").write_text(proc.stdout + proc.stderr)
-    res = {"rc": proc.returncode, "seconds": round(time.perf_counter() - t0, 1),
-           "summary": ((proc.stdout + proc.stderr).strip().splitlines() or [""])[-1]}
-    if xml.exists():
+    with log.open("w") as f:
+        try:
+            rc = subprocess.run(args, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, timeout=ctx.left()).returncode
+        except subprocess.TimeoutExpired:
+            rc = "cut at the stage's deadline"
+    text = log.read_text()
+    res = {"rc": rc, "seconds": round(time.perf_counter() - t0, 1),
+           "summary": (text.strip().splitlines() or [""])[-1],
+           "passed_so_far": text.count(" PASSED"), "failed_so_far": text.count(" FAILED") + text.count(" ERROR")}
+    if xml.exists() and isinstance(rc, int):
         res.update(junit_summary(xml))
     return res
 
@@ -463,10 +489,16 @@ def _run_protocol(ctx: Context, which: str) -> tuple[dict, Path]:
     out_dir = ctx.out / which
     env = {**os.environ, "SMGS_LPIPS_AUTO": "0"}
     t0 = time.perf_counter()
-    proc = subprocess.run(protocol_command(ctx, which, out_dir), cwd=ROOT, env=env, capture_output=True, text=True)
-    (ctx.out / f"{which}.log").write_text(proc.stdout + proc.stderr)
-    return {"rc": proc.returncode, "seconds": round(time.perf_counter() - t0, 1),
-            "tail": (proc.stdout + proc.stderr).strip()[-600:] if proc.returncode else ""}, out_dir
+    log = ctx.out / f"{which}.log"
+    with log.open("w") as f:
+        try:
+            rc = subprocess.run(protocol_command(ctx, which, out_dir), cwd=ROOT, env=env, stdout=f,
+                                stderr=subprocess.STDOUT, timeout=ctx.left()).returncode
+        except subprocess.TimeoutExpired:   # the cells that finished are read all the same
+            rc = "cut at the stage's deadline"
+    text = log.read_text()
+    return {"rc": rc, "seconds": round(time.perf_counter() - t0, 1),
+            "tail": text.strip()[-600:] if rc != 0 else ""}, out_dir
 
 
 def run_fox(ctx: Context) -> dict:

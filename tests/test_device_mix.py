@@ -88,10 +88,13 @@ def test_the_reference_backend_renders_device_splats_through_a_host_camera(monke
         assert out.rgb.device == OTHER and s["quats"].grad.device == OTHER
 
 
+@pytest.mark.parametrize("glue", ["verified", "lean"])
 @pytest.mark.parametrize("method", ["3dgs", "softmax_gs"])
-def test_training_steps_on_another_device_than_the_scene(monkeypatch, method):
+def test_training_steps_on_another_device_than_the_scene(monkeypatch, method, glue):
     """A fit that clones, splits, prunes and resets, trained on the other device; the scene (images,
-    cameras) stays on the host, as a loaded scene does on a GPU run."""
+    cameras) stays on the host, as a loaded scene does on a GPU run. With the lean glue the
+    densification reads the dense projection (every Gaussian's row, radius 0 where culled)."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", glue)
     scene = pattern_scene("circle4", 12)
     with simulated_gpu(monkeypatch):
         m = create_method(method, scene, fit_config(method), device=OTHER)
@@ -125,3 +128,21 @@ def test_a_protocol_cell_trains_and_evaluates_on_another_device_than_its_scene(t
     log = (tmp_path / payload["key"] / "log.txt").read_text()
     assert s["status"] == "ok", log[-3000:]
     assert "MixedDevices" not in log
+
+
+def test_the_lean_glue_trains_what_the_verified_glue_trains(monkeypatch):
+    """Eight steps of a densifying fit on the other device with each glue: the same Gaussians, to
+    the bit (the dense projection's culled rows reach no pixel and add nothing to the densifier's
+    statistics)."""
+    scene = pattern_scene("circle4", 12)
+    params = {}
+    for glue in ("verified", "lean"):
+        monkeypatch.setenv("SMGS_CUDA_GLUE", glue)
+        with simulated_gpu(monkeypatch):
+            m = create_method("softmax_gs", scene, fit_config("softmax_gs"), device=OTHER)
+            for s in range(8):
+                m.train_step(s)
+            params[glue] = {k: v.detach().cpu() for k, v in m.trainer.gaussians.params.items()}
+    assert params["lean"].keys() == params["verified"].keys()
+    for k, v in params["verified"].items():
+        assert torch.equal(params["lean"][k], v), k

@@ -64,12 +64,12 @@ def test_a_stage_past_its_deadline_or_crashing_leaves_the_others(tmp_path, monke
             "p.write_text(json.dumps({'complete': False, 'result': {'default CUDA renderer': {'seconds': 1.5}}})); "
             "time.sleep(60)")
 
-    def command(name, args):
+    def command(name, args, timeout):
         if name == "build":
             return [sys.executable, "-c", hang, str(args.out)]
         if name == "pytest":
             return [sys.executable, "-c", "import sys; print('boom'); sys.exit(3)"]
-        return real(name, args)
+        return real(name, args, timeout)
 
     monkeypatch.setattr(gpu_check, "stage_command", command)
     monkeypatch.setitem(gpu_check.DEADLINES, "build", 3)
