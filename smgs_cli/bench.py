@@ -1,4 +1,5 @@
-"""``smgs bench NAME [ARGS...]``: the benchmarks of bench/, run in this process.
+"""``smgs bench NAME [ARGS...]``: the benchmarks of bench/, run in this process as
+``python -m bench.NAME`` from the checkout would run them.
 
 bench/ is part of the source checkout, not of the installed packages (it reads benchmark scenes
 beside the checkout and times trees of it), so the command finds it next to the installed sources,
@@ -37,12 +38,13 @@ def run_bench(args: list[str]) -> int:
         print(f"smgs bench: {script} is not there: the benchmarks run from a source checkout "
               "(git clone, then pip install --no-build-isolation -e .)", file=sys.stderr)
         return 2
-    saved = sys.argv
+    saved = sys.argv, list(sys.path)
     sys.argv = [str(script), *args[1:]]
+    sys.path.insert(0, str(script.parent.parent))   # as `python -m bench.NAME` from the checkout
     try:
-        runpy.run_path(str(script), run_name="__main__")
+        runpy.run_module(f"bench.{name}", run_name="__main__", alter_sys=True)
     except SystemExit as e:  # the benchmarks end with sys.exit(main())
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     finally:
-        sys.argv = saved
+        sys.argv, sys.path[:] = saved[0], saved[1]
     return 0
