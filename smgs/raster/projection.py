@@ -101,7 +101,7 @@ def host_view(camera: Camera, dtype: torch.dtype, center: bool = False) -> torch
     Kc = camera.K.to(cpu, dtype)
     f = torch.stack([Kc[0, 0], Kc[1, 1]])
     c = torch.stack([Kc[0, 2], Kc[1, 2]])
-    size = torch.tensor([camera.width, camera.height], dtype=dtype)
+    size = torch.tensor([camera.width, camera.height], dtype=dtype, device=cpu)
     # The visible range of x/z widened by 30% of the half field of view each side (3DGS's
     # 1.3·tan(fov/2) for a centred principal point).
     m = 0.15 * size / f
