@@ -114,3 +114,28 @@ def test_wrapper_plumbing_matches_the_reference(mode, n_ch, n_reg, eq15, scope):
         tol = 1e-5 if k == "background" else 0.0
         torch.testing.assert_close(got, want, rtol=tol, atol=tol, msg=k)
     assert (gw["alpha"] is None) == (not use_gef) and (gw["beta"] is None) == (not use_soft)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_wrapper_with_no_splats_renders_the_background_without_calling_the_kernel(mode):
+    """A view with nothing in it (a collapsed model): the kernels read the regulariser's channel
+    count from a non-empty reg_values only, so the wrapper answers N = 0 itself, with the
+    documented shapes and zero gradients, and never calls the extension."""
+    ext = StandInExtension()
+    z = lambda *s: torch.zeros(*s, requires_grad=True)  # noqa: E731
+    ins = dict(means2d=z(0, 2), conics=z(0, 3), opacities=z(0), colors=z(0, 3), depths=z(0), alpha=z(0),
+               beta=z(0), gamma=z(0))
+    rv = z(0, 2)
+    bg = torch.tensor([0.2, 0.5, 0.7], requires_grad=True)
+    out = cuda_backend.composite(ext, *ins.values(), 21, 17, mode, 3, bg, "solved", rv, 1.0)
+    assert ext.calls == []
+    assert torch.equal(out.rgb, bg.detach().expand(17, 21, 3)) and not out.alpha.any() and not out.depth.any()
+    assert out.reg.shape == (17, 21, 5) and not out.reg.any() and out.stats.pairs_evaluated == 0
+    (out.rgb.sum() + out.alpha.sum() + out.depth.sum() + out.reg.sum()).backward()
+    use_gef, use_soft = mode_flags(mode)
+    used = ["means2d", "conics", "opacities", "colors", "depths"] + (["alpha"] if use_gef else []) \
+        + (["beta", "gamma"] if use_soft else [])
+    for k in used:
+        assert ins[k].grad is not None and ins[k].grad.shape == ins[k].shape, k
+    assert rv.grad is not None and rv.grad.shape == (0, 2)
+    assert torch.equal(bg.grad, torch.full((3,), 17.0 * 21))

@@ -27,7 +27,7 @@ import torch
 from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
-                                     kernel_output)
+                                     kernel_output, no_splats)
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
@@ -182,6 +182,9 @@ def rasterize_splats_cpu(
     ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (no
     ``reg_values``). ``leaders`` renders through the per-pixel kernel (a scalar path, in either
     order) to give the leading-splat map too."""
+    if means2d.shape[0] == 0:   # nothing to composite (smgs.raster.kernel_args.no_splats)
+        return no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
+                         k_max, background, eq15, reg_values, reg_depth_scale, t_min, leaders, k_max_scope)
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
     if ray_depth is not None or leaders:

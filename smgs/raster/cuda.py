@@ -27,7 +27,7 @@ from smgs.raster import constants as K
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
 from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
-                                     kernel_output)
+                                     kernel_output, no_splats)
 from smgs.raster.types import Eq15, KMaxScope, RenderOutput
 
 log = logging.getLogger(__name__)
@@ -132,6 +132,9 @@ def composite(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamm
               k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE) -> RenderOutput:
     """``rasterize_splats_cuda`` with the extension passed in (the argument plumbing is tested
     without a GPU by passing a stand-in extension). ``t_min`` is already compiled into ``ext``."""
+    if means2d.shape[0] == 0:   # nothing to composite (kernel_args.no_splats); the kernel is not called
+        return no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
+                         k_max, background, eq15, reg_values, reg_depth_scale, t_min, k_max_scope=k_max_scope)
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
     args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDA.apply(*args, st, ext)

@@ -67,3 +67,19 @@ def kernel_output(st: CompositeSettings, rgb: torch.Tensor, alpha: torch.Tensor,
                         list_end=list_end if st.patch else None)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats, reg=reg,
                         leaders=None if leaders is None else leaders.long())
+
+
+def no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
+              background, eq15, reg_values, reg_depth_scale, t_min, leaders: bool = False,
+              k_max_scope: str | None = None) -> RenderOutput:
+    """A render of zero splats (none in view): the background, zero alpha and depth, and zero
+    gradients for every input. The compiled kernels read the regulariser's channel count from a
+    non-empty ``reg_values`` only, so with none they returned ``reg`` [H, W, 0] and the ray
+    variance failed on it; the reference has no per-splat work to do here and gives the
+    documented shapes ([H, W, 1 + 2R]) with its outputs still in the autograd graph."""
+    from smgs.raster.reference import rasterize_splats_reference
+
+    return rasterize_splats_reference(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width,
+                                      height, mode=mode, k_max=k_max, background=background, eq15=eq15,
+                                      reg_values=reg_values, reg_depth_scale=reg_depth_scale, t_min=t_min,
+                                      leaders=leaders, **({} if k_max_scope is None else {"k_max_scope": k_max_scope}))

@@ -350,7 +350,22 @@ def rasterize_splats_reference(
     stats = RenderStats(n_contrib=count.reshape(height, width), pairs_evaluated=P * means2d.shape[0],
                         k_max=k_max if use_softmax else 2**31 - 1, scope=k_max_scope,
                         list_end=None if list_end is None else list_end.reshape(height, width))
+    used = (means2d, conics, opacities, colors, depths) + ((alpha,) if use_gef else ()) \
+        + ((beta, gamma) if use_softmax else ()) + (reg_values,)
+    tie = _tie(used)
+    if tie is not None:
+        C, A = C + tie, A + tie
+        reg = None if reg is None else reg + tie
     return _output(T, A, C, background, stats, reg, lead, width, height)
+
+
+def _tie(tensors) -> torch.Tensor | None:
+    """An exact 0 that depends on every input needing a gradient (the sum of an empty slice of
+    each), added to the outputs: a view where no splat reaches a pixel (none in view, all behind
+    the camera) then back-propagates zero gradients, as the compiled backends do, instead of an
+    output outside the graph whose ``backward()`` raises. None when no input needs a gradient."""
+    parts = [t.reshape(-1)[:0].sum() for t in tensors if t is not None and t.requires_grad]
+    return sum(parts[1:], parts[0]) if parts else None
 
 
 def _output(T, A, C, background, stats: RenderStats, reg, lead, width: int, height: int) -> RenderOutput:

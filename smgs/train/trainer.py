@@ -195,6 +195,8 @@ class Trainer:
     def check_finite(self, step: int, where: str = "") -> None:
         params = self.gaussians.params
         tensors = [params[n].detach() for n in PARAM_NAMES if params[n].numel()]
+        if not tensors:   # no Gaussian left (a collapsed model): nothing can be non-finite
+            return
         # One fused reduction; a NaN/inf anywhere makes its norm non-finite. A finite tensor whose
         # norm overflows is a false alarm, cleared by the exact per-group test below.
         if bool(torch.isfinite(torch.stack(torch._foreach_norm(tensors))).all()):
@@ -232,6 +234,7 @@ class Trainer:
             logs["var_beta"], logs["var_gamma"] = float(var[0].detach()), float(var[1].detach())
         if ev is not None and ev.changed():
             logs.update(cloned=float(ev.cloned), split=float(ev.split), pruned=float(ev.pruned),
+                        pruned_transparent=float(ev.pruned_transparent), pruned_big=float(ev.pruned_big),
                         opacity_reset=float(ev.reset))
             if ev.relocated or ev.added:
                 logs.update(relocated=float(ev.relocated), added=float(ev.added))

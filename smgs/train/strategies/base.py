@@ -20,6 +20,8 @@ class RefineEvent:
     cloned: int = 0
     split: int = 0
     pruned: int = 0
+    pruned_transparent: int = 0  # of ``pruned``: opacity under the threshold
+    pruned_big: int = 0          # of ``pruned``: too big on screen or in the world (after a reset)
     reset: bool = False
     capped: int = 0          # candidates dropped because of the cap
     relocated: int = 0       # MCMC: dead Gaussians moved onto live ones

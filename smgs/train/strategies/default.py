@@ -183,17 +183,20 @@ class DefaultStrategy:
         n_new = len(g) - n
         # Originals of the split Gaussians go; so do transparent ones and, after the first
         # reset, big ones (3DGS ``densify_and_prune``: max_radii2D is not grown for new rows).
-        drop = torch.cat([split, split.new_zeros(n_new)])
-        drop |= g.opacities.detach() < c.prune_opacity
+        split_rows = torch.cat([split, split.new_zeros(n_new)])
+        transparent = (g.opacities.detach() < c.prune_opacity) & ~split_rows
+        drop = split_rows | transparent
         if prune_big:
             radii = torch.cat([self.max_radii, self.max_radii.new_zeros(n_new)])
             drop |= radii > c.prune_screen_px
             drop |= g.scales.detach().max(dim=1).values > self.size_prune * self.extent
         n_pruned = int(drop.sum()) - n_split
+        n_transparent = int(transparent.sum())
         if bool(drop.any()):
             opt.keep(~drop)
         self._reset_stats(len(g))   # 3DGS zeroes every Gaussian's statistics after a refinement
-        return RefineEvent(cloned=n_clone, split=n_split, pruned=n_pruned, capped=capped)
+        return RefineEvent(cloned=n_clone, split=n_split, pruned=n_pruned, pruned_transparent=n_transparent,
+                           pruned_big=n_pruned - n_transparent, capped=capped)
 
     @torch.no_grad()
     def reset_opacity(self, g: Gaussians, opt: GaussianOptimizer) -> None:

@@ -134,6 +134,8 @@ class MCMCStrategy:
 
     def regularizer(self, iteration: int, g: Gaussians) -> torch.Tensor | None:
         c = self.cfg
+        if len(g) == 0:   # a mean over no Gaussian is NaN; with none left there is nothing to regularise
+            return None
         terms = []
         if c.mcmc_opacity_reg > 0:
             terms.append(c.mcmc_opacity_reg * g.opacities.mean())
