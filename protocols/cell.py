@@ -168,7 +168,10 @@ def _failed(key: str, run_dir: Path, base: RunResult, e: Exception, log: logging
         write_result(run_dir, base)
     except OSError as w:  # the run's folder itself is the problem: the summary still says why
         base.error += f" (not recorded in {run_dir}: {type(w).__name__}: {w})"
-    return {"key": key, "status": base.status, "error": base.error}
+    out = {"key": key, "status": base.status, "error": base.error}
+    if log and base.status == "failed":
+        out["log"] = str(run_dir / LOG)   # the summary line names the file with the traceback
+    return out
 
 
 def _yaml(cfg: dict) -> str:

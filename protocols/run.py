@@ -227,7 +227,8 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
             "skipped (another process is writing it)" if s.get("busy") else s["status"]
         counts[k] = counts.get(k, 0) + 1
         if s["status"] != "ok":
-            print(f"  {s['key']}: {s['status']}: {s.get('error')}", flush=True)
+            where = f" (traceback in {s['log']})" if s.get("log") else ""
+            print(f"  {s['key']}: {s['status']}: {s.get('error')}{where}", flush=True)
     print("runs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())), flush=True)
     if cfg.report:
         from protocols.report_step import build_report

@@ -17,6 +17,7 @@ from PIL import Image
 
 from baselines.method import LeadingSplats
 from protocols.cell_scene import load_scene_for
+from protocols.collapse import CollapseWatch
 from protocols.sections import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
@@ -149,14 +150,15 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     result.build_seconds = _prepare_kernels(method, log)
     clock = TrainClock(device)
     neighbours = NeighbourLog()   # the cells (of any sweep) that shared this machine while it trained
+    watch = CollapseWatch.start(method.num_gaussians())
     with track_peak_memory(device) as peak:
         result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log,
-                             neighbours)
+                             neighbours, watch)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
 
-    within = final_metrics(method, scene, test_rgb, ev, run_dir, device, result)
+    within, coverage = final_metrics(method, scene, test_rgb, ev, run_dir, device, result)
     with fps_slot() as fps_conditions:
         fps = measure_render_fps(lambda c: method.render(c), [v.camera for v in scene.test],
                                  warmup=ev.fps_warmup, repeats=ev.fps_repeats, device=device)
@@ -172,13 +174,16 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
                                               "cells_in_parallel": neighbours.most}
     if peak.baseline_bytes:   # resident at the training block's entry: peak minus this is the run's own
         result.diagnostics["peak_memory_baseline_mb"] = peak.baseline_bytes / 2**20
+    result.diagnostics["collapse"] = watch.assess(result.num_gaussians, coverage, plan,
+                                                  run_settings(cfg).grad_threshold, log)
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
             result.consistency = consistency(method, scene, run_dir, ev, device)
     result.status = "ok"
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in result.curve], "config_hash": result.config_hash})
+                                       "curve": [c.__dict__ for c in result.curve], "config_hash": result.config_hash,
+                                       "collapse_watch": watch.to_json()})
     after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
 
@@ -195,13 +200,17 @@ def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
 
 def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
           cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger,
-          neighbours: NeighbourLog | None = None) -> list[CurvePoint]:
+          neighbours: NeighbourLog | None = None, watch: CollapseWatch | None = None) -> list[CurvePoint]:
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps (the error-against-time curve, returned) and a
     checkpoint every ``checkpoint_every`` steps, both outside the train clock. ``neighbours``
-    counts the cells running on this machine every 10 steps."""
+    counts the cells running on this machine every 10 steps; ``watch`` follows the Gaussian count
+    (``protocols.collapse``; its history is kept in the checkpoints)."""
+    watch = watch or CollapseWatch.start(method.num_gaussians())
     progress = _load_checkpoint(run_dir, method, config_hash, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
+    if progress.get("collapse_watch"):
+        watch.restore(progress["collapse_watch"])
     start = int(progress["step"])
     clock.seconds = float(progress["train_seconds"])
     curve = [CurvePoint(**c) for c in progress["curve"]]
@@ -214,6 +223,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
         with clock.training():
             logs = method.train_step(step)
         done = step + 1
+        watch.step(done, method.num_gaussians(), logs, log)
         if done in checks:
             with clock.exclude("eval"):
                 last_psnr = quick_psnr(method, scene.test, test_rgb, ev.quantize)
@@ -224,7 +234,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             with clock.exclude("checkpoint"):
                 _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
                                                    "curve": [c.__dict__ for c in curve],
-                                                   "config_hash": config_hash})
+                                                   "config_hash": config_hash, "collapse_watch": watch.to_json()})
         bar.update(1)
         if done % 10 == 0 or done == steps:
             if neighbours is not None:
@@ -241,16 +251,18 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
 
 
 def final_metrics(method, scene, test_rgb: list[torch.Tensor], ev: EvalConfig, run_dir: Path,
-                  device: torch.device, result: RunResult) -> list[float]:
+                  device: torch.device, result: RunResult) -> tuple[list[float], dict[str, float]]:
     """The test views' PSNR, SSIM, LPIPS and FLIP (on 8-bit renders unless ``ev.quantize`` is
-    off) into ``result``, the renders saved; returns each view's fraction of pixels within k_max."""
-    renders, names, within = [], [], []
+    off) into ``result``, the renders saved; returns each view's fraction of pixels within k_max
+    and each view's mean alpha (how much of it the model covers; ``protocols.collapse``)."""
+    renders, names, within, coverage = [], [], [], {}
     with torch.no_grad():
         for v in scene.test:
             out = method.render(v.camera)
             renders.append(out.rgb.clamp(0, 1))
             names.append(v.name)
             within.append(out.stats.frac_within_kmax)
+            coverage[v.name] = float(out.alpha.float().mean())
     if ev.save_renders:
         for n, img in zip(names, renders):
             _save_png(run_dir / "renders" / f"{Path(n).stem}.png", quantize_8bit(img))
@@ -268,7 +280,7 @@ def final_metrics(method, scene, test_rgb: list[torch.Tensor], ev: EvalConfig, r
             result.metrics[key] = float(mean)
             result.per_view[key] = values
     result.lpips_net = m.lpips_name
-    return within
+    return within, coverage
 
 
 def diagnostics(method, desc: dict, plan: list[str], within: list[float], ev: EvalConfig, clock: TrainClock,
@@ -282,7 +294,8 @@ def diagnostics(method, desc: dict, plan: list[str], within: list[float], ev: Ev
     if mode in ("softmax_only", "softmax_gs", "gef_only", "3dgs") and mode_flags(mode)[1]:
         diag["frac_within_kmax"] = float(np.mean(within))
         diag["k_max_scope"] = desc.get("config", {}).get("k_max_scope", "pixel")   # what the coverage counts
-    diag["params"] = {k: _quantiles(v) for k, v in method.parameter_values().items()}
+    # quantiles of no value do not exist: a model with no Gaussian left records none
+    diag["params"] = {k: _quantiles(v) for k, v in method.parameter_values().items() if v.numel()}
     return diag
 
 

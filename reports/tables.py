@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from typing import Iterable
 
 from protocols.results import RunResult
+from reports.collapse import LABEL as COLLAPSED
+from reports.collapse import collapse_note, collapsed_runs
 from reports.ordering import ordering_section
 from reports.paper import (DATASET_SCENES, PATTERNS, GROUP_LABELS, GROUP_ORDER, PaperTables, budget_group,
                            budget_rank, dataset_label, dataset_rank, method_label, method_rank, paper_key,
@@ -61,8 +63,10 @@ class Context:
 
     def label(self, key: RowKey, runs: Iterable[RunResult] = ()) -> tuple[str, list[str]]:
         """The row's label and its footnotes: [preset] for a reduced preset, [reference renderer]
-        when any of its ``runs`` rendered with the PyTorch reference backend."""
+        when any of its ``runs`` rendered with the PyTorch reference backend, [collapsed] when any
+        of them collapsed (``reports.collapse``)."""
         method, budget, preset = key
+        runs = list(runs)
         text, notes = row_label(method, budget), []
         if preset != "paper":
             text += f" [{preset}]"
@@ -70,6 +74,10 @@ class Context:
         if any(r.versions.get("backend") == "reference" for r in runs):
             text += " [reference renderer]"
             notes.append(REFERENCE_NOTE)
+        collapsed = collapsed_runs(runs)
+        if collapsed:
+            text += " " + COLLAPSED
+            notes.append(collapse_note(collapsed))
         return text, notes
 
 

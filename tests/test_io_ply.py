@@ -131,6 +131,21 @@ def test_train_export_import_renders_the_same(scene, tmp_path, method):
             assert torch.equal(value, back.parameter_values()[name]), name
 
 
+@pytest.mark.parametrize("n", [0, 1])
+@pytest.mark.parametrize("method", ["3dgs", "softmax_gs"])
+def test_a_model_of_zero_or_one_gaussian_round_trips(scene, tmp_path, method, n):
+    """A collapsed run exports (and reads back) what is left: none, or a single Gaussian."""
+    m = create_method(method, scene, {"steps": 2, "densify": {"enabled": False}}, device="cpu")
+    m.trainer.optimizer.keep(torch.arange(m.num_gaussians()) < n)
+    m.train_step(0)
+    s = read_ply(m.export_ply(tmp_path / "model.ply"))
+    assert len(s) == n and s.mode == method and s.means.shape == (n, 3)
+    back = GaussianSplatting.from_ply(scene, tmp_path / "model.ply", device="cpu")
+    assert back.num_gaussians() == n
+    v = scene.test[0]
+    assert torch.equal(back.render(v.camera).rgb, m.render(v.camera).rgb)
+
+
 def test_a_file_of_another_tool_with_normals_and_unknown_properties(scene, tmp_path):
     k = known_gaussians(scene, 50, 0)
     write_by_hand(tmp_path / "m.ply", **k, extras={"red": np.ones(50, np.float32)})

@@ -68,14 +68,17 @@ def test_runs_then_skips_finished_cells_and_force_redoes(tmp_path, monkeypatch):
     assert not s4[0].get("skipped")
 
 
-def test_a_failing_cell_is_recorded_and_the_others_finish(tmp_path, plugin_methods):
+def test_a_failing_cell_is_recorded_and_the_others_finish(tmp_path, plugin_methods, capsys):
     s = run_experiment(tiny(tmp_path, "grid.methods=[boom,3dgs]"))
     by = {x["key"].split("/")[2]: x for x in s}
     assert by["boom"]["status"] == "failed" and "boom at step 0" in by["boom"]["error"]
     assert by["3dgs"]["status"] == "ok"
     r = read_result(tmp_path / "patterns/circle4/boom/cap4/seed0/results.json")
     assert r.status == "failed" and "RuntimeError: boom at step 0" in r.error
-    assert "Traceback" in (tmp_path / "patterns/circle4/boom/cap4/seed0/log.txt").read_text()
+    log = tmp_path / "patterns/circle4/boom/cap4/seed0/log.txt"
+    assert "Traceback" in log.read_text()
+    # the summary line names the file that holds the traceback
+    assert f"failed: RuntimeError: boom at step 0 (traceback in {log})" in capsys.readouterr().out
 
 
 def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, plugin_methods):

@@ -42,6 +42,11 @@ def test_nothing_in_view_renders_the_background_with_zero_gradients(backend, mod
                     sort=sort, reg_values=p["reg"] if with_reg else None)
     assert torch.equal(out.rgb, BG.expand(18, 24, 3))
     assert not out.alpha.any() and not out.depth.any() and not out.stats.n_contrib.any()
+    with torch.no_grad():   # the leading-splat map (view consistency's popping ratio): none anywhere
+        lead = rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["sh"], CAM, alpha=p["alpha"],
+                         beta=p["beta"], gamma=p["gamma"], mode=mode, sh_degree=1, background=BG,
+                         backend=backend, sort=sort, leaders=True).leaders
+    assert lead.shape == (18, 24, 2) and (lead == -1).all()
     loss = out.rgb.sum() + out.alpha.sum() + out.depth.sum()
     if with_reg:
         assert out.reg.shape == (18, 24, 5)            # Σw, Σw·v, Σw·v² of 2 values

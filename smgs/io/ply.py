@@ -173,9 +173,7 @@ def read_ply(path: Path | str) -> PlySplats:
         raise PlyFormatError(path, f"no 'vertex' element (elements: {[el.name for el in ply.elements]})",
                              "one element 'vertex' holding the Gaussians")
     vertex = ply["vertex"]
-    n = vertex.count
-    if n == 0:
-        raise PlyFormatError(path, "0 Gaussians ('element vertex 0')", "at least one vertex")
+    n = vertex.count   # 0 is a model of nothing (a collapsed run's export): read as written
     names = [p.name for p in vertex.properties]
     for p in vertex.properties:
         if isinstance(p, plyfile.PlyListProperty):

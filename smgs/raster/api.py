@@ -404,7 +404,7 @@ def rasterize(
     out = _rasterize_splats(means2d, proj.conics, opac, colors, proj.depths, pick(alpha), pick(beta), pick(gamma),
                             camera.width, camera.height, mode, k_max, background, backend, eq15, pick(reg_values),
                             reg_depth_scale, t_min, rd, leaders, k_max_scope, cuda_kernels, chk)
-    if out.leaders is not None:   # projected index -> the caller's index
+    if out.leaders is not None and ids.numel():   # projected index -> the caller's index (none: all -1)
         out.leaders = torch.where(out.leaders >= 0, ids[out.leaders.clamp_min(0)], out.leaders)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)
     return out
