@@ -6,8 +6,8 @@ called directly, forward + backward, in one process, interleaved call by call.
 
 ``kernel alone``: the compiled projection's forward, the compiled renderer's forward and backward
 and the projection's backward (csrc/projection_cpu.cpp, csrc/cpu_kernel.cpp) on inputs prepared
-once outside the clock (the gathered colours and opacities, the image-mean loss's gradient), as
-nothing but rendering would cost. ``rasterize``: the public entry point (input checks, camera,
+once outside the clock (the gathered colours and opacities), with the loss (the image mean) and its
+gradient computed as the api's caller computes them: what nothing but rendering would cost. ``rasterize``: the public entry point (input checks, camera,
 projection, gathers, autograd, the loss = image mean and its backward). The ratio is the median of
 the per-round ratios (a shared machine's load drifts alike for both within a round), in wall time
 and in the CPU time of the process's threads (robust to a loaded machine's waits for a core). As
@@ -67,7 +67,6 @@ def kernel_call(p, cam, mode):
     al, be, ga = (p[k][ids].contiguous() if on else torch.empty(0) for k, on in (("alpha", gef), ("beta", soft),
                                                                                  ("gamma", soft)))
     W, H, nth = cam.width, cam.height, torch.get_num_threads()
-    g_rgb = torch.full((H, W, 3), 1.0 / (H * W * 3))
     zeros = torch.zeros(H, W)
     empty = torch.empty(0)
 
@@ -76,6 +75,8 @@ def kernel_call(p, cam, mode):
         o = rm.forward(m2, con, opac, col, dep, al, be, ga, empty, empty, W, H, gef, soft, K.DEFAULT_K_MAX, True,
                        1.0, nth, K.T_MIN, False)
         rgb, a, d, reg, cnt, tf, last, pairs, sid, pk, box, toff, tlist, soff, spos, _ = o
+        rgb.mean()                                          # the loss, and its gradient, as the api's caller
+        g_rgb = torch.full_like(rgb, 1.0 / rgb.numel())
         g = rm.backward(g_rgb, zeros, zeros, empty, a, d, tf, last, sid, pk, box, toff, tlist, soff, spos, empty,
                         m2.shape[0], 3, 0, W, H, gef, soft, K.DEFAULT_K_MAX, True, 1.0, nth, False)
         pm.backward(p["means3d"], p["quats"], p["scales"], view, near, eps, ids_, g[0], g[1], g[4])

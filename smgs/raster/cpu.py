@@ -27,7 +27,7 @@ import torch
 from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
-                                     kernel_output, no_splats)
+                                     kernel_output, no_splats, output_grads)
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
@@ -76,14 +76,14 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
         ctx.nthreads = nthreads   # the backward sums per-tile rows in the forward's order
         ctx.mark_non_differentiable(cnt, pairs, t_final, list_end)
+        ctx.set_materialize_grads(False)   # no zero gradients made for the counters (output_grads)
         return rgb, alpha_out, depth, reg, cnt, pairs, t_final, list_end
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t, _g_end):
         alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos, bg = ctx.saved_tensors
         st = ctx.settings
-        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
-        g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
+        g_rgb, g_alpha, g_depth, g_reg = output_grads(ctx, g_rgb, g_alpha, g_depth, g_reg, alpha_out)
         grads = extension().backward(
             g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
             spos, bg, ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax,

@@ -48,6 +48,23 @@ def kernel_inputs(st: CompositeSettings, means2d, conics, opacities, colors, dep
             f32(gamma) if st.use_softmax else None, None if bg is None else bg.contiguous(), f32(reg_values))
 
 
+def output_grads(ctx, g_rgb, g_alpha, g_depth, g_reg, alpha_out: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The image gradients as the kernels read them: contiguous float32, zeros where the loss did not
+    use an output (a Function with ``set_materialize_grads(False)`` gets None there: autograd then
+    makes no zeros for the outputs that carry none, the counters and the final transmittance), and
+    an empty ``g_reg`` where nothing was regularised."""
+    zeros = lambda *shape: alpha_out.new_zeros(shape)  # noqa: E731
+    h, w = alpha_out.shape
+    g_rgb = zeros(h, w, ctx.n_channels) if g_rgb is None else g_rgb.contiguous().float()
+    g_alpha = zeros(h, w) if g_alpha is None else g_alpha.contiguous().float()
+    g_depth = zeros(h, w) if g_depth is None else g_depth.contiguous().float()
+    if not ctx.n_reg:
+        g_reg = alpha_out.new_empty(0)
+    else:
+        g_reg = zeros(h, w, 1 + 2 * ctx.n_reg) if g_reg is None else g_reg.contiguous().float()
+    return g_rgb, g_alpha, g_depth, g_reg
+
+
 def kernel_grads(ctx, grads, g_rgb: torch.Tensor, t_final: torch.Tensor, n_settings: int = 1) -> tuple:
     """The backward's return: the kernel's nine gradients (means2d ... gamma, reg_values) with the
     background's added, None for every input that needs none, then None for the settings."""

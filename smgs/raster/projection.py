@@ -291,15 +291,17 @@ class _ProjectCPU(torch.autograd.Function):
         ctx.mark_non_differentiable(ids, radii)
         ctx.save_for_backward(means3d, quats, scales, ids, view)
         ctx.args = (near_plane, eps2d)
+        ctx.set_materialize_grads(False)   # no zero gradients made for ids and radii
         return ids, means2d, conics, depths, radii
 
     @staticmethod
     @once_differentiable
     def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii):  # type: ignore[override]
         means3d, quats, scales, ids, view = ctx.saved_tensors
+        m = ids.shape[0]
+        g = lambda t, *shape: means3d.new_zeros(shape) if t is None else t.contiguous()  # noqa: E731
         g_means, g_quats, g_s = _JIT.module().backward(
-            means3d, quats, scales, view, *ctx.args, ids, g_m2d.contiguous(), g_con.contiguous(),
-            g_depth.contiguous())
+            means3d, quats, scales, view, *ctx.args, ids, g(g_m2d, m, 2), g(g_con, m, 3), g(g_depth, m))
         return g_means, g_quats, g_s, None, None, None
 
 
