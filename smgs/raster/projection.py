@@ -234,7 +234,7 @@ class _Project(torch.autograd.Function):
 
 @functools.lru_cache(maxsize=8)
 def _unit_conic(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    return to_device(torch.tensor([1.0, 0.0, 1.0], dtype=dtype), device)
+    return to_device(torch.tensor([1.0, 0.0, 1.0], dtype=dtype, device="cpu"), device)
 
 
 class _ProjectDense(torch.autograd.Function):
