@@ -68,14 +68,19 @@ def test_size_pruning_threshold_relative_to_extent():
         g, opt, st = _case([0.001, s], [0.5, 0.5], [0.0, 0.0], size_prune=thr)
         st.densify_and_prune(g, opt, prune_big=True)
         assert len(g) == left
-    # screen-size pruning (> 20 px), only after the first reset
+    # screen-size pruning: off by default (3DGS as released never applies its 20 px rule) ...
     g, opt, st = _case([0.001, 0.001], [0.5, 0.5], [0.0, 0.0])
+    st.max_radii = torch.tensor([5.0, 25.0])
+    ev = st.densify_and_prune(g, opt, prune_big=True)
+    assert len(g) == 2 and ev.pruned == 0
+    # ... and where it is asked for (> 20 px), only after the first reset, counted as too big
+    g, opt, st = _case([0.001, 0.001], [0.5, 0.5], [0.0, 0.0], prune_screen_px=20.0)
     st.max_radii = torch.tensor([5.0, 25.0])
     st.densify_and_prune(g, opt, prune_big=False)
     assert len(g) == 2
     st.max_radii = torch.tensor([5.0, 25.0])
-    st.densify_and_prune(g, opt, prune_big=True)
-    assert len(g) == 1
+    ev = st.densify_and_prune(g, opt, prune_big=True)
+    assert len(g) == 1 and ev.pruned == ev.pruned_big == 1 and ev.pruned_transparent == 0
 
 
 def test_schedule_and_opacity_reset():

@@ -6,7 +6,8 @@ screen-space mean gradient (in NDC units, i.e. the pixel gradient × (W/2, H/2),
 gsplat measure it) and its largest screen radius. Every ``refine_every`` steps after
 ``refine_start``: clone small Gaussians and split large ones whose mean gradient ≥ grow_grad2d,
 then prune the transparent ones (opacity < 0.005) and, after the first opacity reset, the big ones
-(screen radius > 20 px, or largest world scale > size_prune × extent). Opacity reset every
+(largest world scale > size_prune × extent; screen radius > ``prune_screen_px`` only where that is
+set: 3DGS as released never prunes by screen size, ``DensifyConfig``). Opacity reset every
 ``reset_every`` steps to min(opacity, 0.01).
 """
 
@@ -77,8 +78,9 @@ class DefaultStrategy:
         return [f"densification: budget {c.budget} (grad {c.grow_grad2d:g}{', cap ' + str(c.cap) if c.cap else ''}), "
                 f"steps {c.refine_start}-{c.refine_stop} every {c.refine_every}",
                 "opacity reset: off; size pruning: off (only after a reset)" if c.reset_every is None
-                else f"opacity reset every {c.reset_every}; size pruning {self.size_prune:g} x extent "
-                     f"and {c.prune_screen_px:g} px after the first reset"]
+                else f"opacity reset every {c.reset_every}; size pruning {self.size_prune:g} x extent"
+                     + ("" if c.prune_screen_px is None else f" and {c.prune_screen_px:g} px on screen")
+                     + " after the first reset"]
 
     def initialize(self, g: Gaussians, opt: GaussianOptimizer) -> list[str]:
         return []
@@ -182,13 +184,14 @@ class DefaultStrategy:
             opt.append({k: torch.cat(v, 0) for k, v in extra.items()})
         n_new = len(g) - n
         # Originals of the split Gaussians go; so do transparent ones and, after the first
-        # reset, big ones (3DGS ``densify_and_prune``: max_radii2D is not grown for new rows).
+        # reset, big ones (new rows have no screen radius yet).
         split_rows = torch.cat([split, split.new_zeros(n_new)])
         transparent = (g.opacities.detach() < c.prune_opacity) & ~split_rows
         drop = split_rows | transparent
         if prune_big:
             radii = torch.cat([self.max_radii, self.max_radii.new_zeros(n_new)])
-            drop |= radii > c.prune_screen_px
+            if c.prune_screen_px is not None:
+                drop |= radii > c.prune_screen_px
             drop |= g.scales.detach().max(dim=1).values > self.size_prune * self.extent
         n_pruned = int(drop.sum()) - n_split
         n_transparent = int(transparent.sum())
