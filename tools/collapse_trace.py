@@ -2,8 +2,8 @@
 refinement (docs/studies/fox-collapse.md).
 
     python tools/collapse_trace.py SCENE [--mode M] [--budget 5pct] [--steps 3000] [--width 400]
-        [--schedule-steps 30000] [--refine-every N] [--reset-every N] [--init random|auto]
-        [--every 100] [--json out.json]
+        [--schedule-steps 30000] [--refine-every N] [--reset-every N] [--prune-screen-px PX]
+        [--size-prune X] [--init random|auto] [--n-random N] [--every 100] [--json out.json]
 
 SCENE is a transforms.json scene (a folder or the file), loaded as the cpu preset loads it (images
 at most ``--width`` px wide). The TrainConfig is the one ``protocols.run`` builds for the method and
@@ -43,7 +43,7 @@ def build(args: argparse.Namespace):
     run = RunSettings(steps=args.steps, seed=args.seed, budget=args.budget, budget_kind=args.budget,
                       grad_threshold=grad, cap=None, schedule_steps=args.schedule_steps)
     mc = train_config({"mode": args.mode, "k_max": 128, "optim": "3dgs2023+softmaxgs_real",
-                       "gaussians": {"init": args.init}}, run)
+                       "gaussians": {"init": args.init, "n_random": args.n_random}}, run)
     for key, v in (("refine_every", args.refine_every), ("reset_every", args.reset_every),
                    ("prune_screen_px", args.prune_screen_px), ("size_prune", args.size_prune)):
         if v is not None:
@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
                     help="prune by screen size after a reset (the rule 3DGS's code names: 20 px; default off)")
     ap.add_argument("--size-prune", type=float, help="world size limit x extent (3dgs 0.1, softmax modes 0.4)")
     ap.add_argument("--init", default="auto", choices=("auto", "random", "sfm"))
+    ap.add_argument("--n-random", type=int, default=100_000, help="random points where the scene has no SfM points")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--every", type=int, default=100)
     ap.add_argument("--json")
