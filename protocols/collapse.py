@@ -22,7 +22,7 @@ EMPTY_VIEW_ALPHA = 0.02
 """A test view whose mean alpha (the share of the image the model covers) is under this renders
 (almost) empty."""
 
-EVENTS = ("cloned", "split", "pruned", "pruned_transparent", "pruned_big", "relocated", "added")
+EVENTS = ("cloned", "split", "pruned", "pruned_transparent", "pruned_big", "pruned_big_screen", "relocated", "added")
 
 
 @dataclass
@@ -108,9 +108,13 @@ class CollapseWatch:
                      f"{self.resets} opacity reset(s)) faster than densification replaced them ({t['cloned']} "
                      f"cloned, {t['split']} split"
                      + (f" at the gradient threshold {grad_threshold:g})" if grad_threshold else ")"))
+        elif t["pruned"] and 2 * t["pruned_big_screen"] >= t["pruned_big"]:
+            cause = (f"Gaussians pruned as too big on screen ({t['pruned_big_screen']} of {t['pruned']} pruned; the "
+                     f"screen-size rule densify.prune_screen_px, which 3DGS as released never applies) faster than "
+                     f"densification replaced them ({grown} added)")
         elif t["pruned"]:
-            cause = (f"Gaussians pruned as too big on screen or in the world ({t['pruned_big']} of {t['pruned']} "
-                     f"pruned) faster than densification replaced them ({grown} added)")
+            cause = (f"Gaussians pruned as too big in the world ({t['pruned_big']} of {t['pruned']} pruned, over "
+                     f"densify.size_prune x the scene extent) faster than densification replaced them ({grown} added)")
         else:
             cause = f"the count fell from {self.peak} to {final} without pruning events the method reports"
         if random_init:

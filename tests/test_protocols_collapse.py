@@ -82,3 +82,54 @@ def test_a_handful_of_gaussians_goes_through_every_stage(tmp_path, n):
     if c["empty_views"]:
         assert c["min_view_alpha"] < EMPTY_VIEW_ALPHA and "render (almost) empty" in c["what"]
         assert c["likely_cause"].startswith("the model does not cover those views")
+
+
+def _watched(events: list[dict], start: int = 1000, plan: tuple[str, ...] = ()) -> tuple[dict, list[str]]:
+    """A CollapseWatch fed ``events`` (one step each, the count following them), then assessed."""
+    import logging
+
+    from protocols.collapse import CollapseWatch
+
+    class Sink(logging.Handler):
+        def __init__(self):
+            super().__init__()
+            self.lines = []
+
+        def emit(self, record):
+            self.lines.append(record.getMessage())
+
+    log, sink = logging.getLogger("test.collapse"), Sink()
+    log.addHandler(sink)
+    w, n = CollapseWatch.start(start), start
+    for i, e in enumerate(events, 1):
+        n += e.get("cloned", 0) + e.get("split", 0) - e.get("pruned", 0)
+        w.step(i, n, e, log)
+    out = w.assess(n, {"a": 0.5}, list(plan), 4e-3, log)
+    log.removeHandler(sink)
+    return out, sink.lines
+
+
+def test_the_cause_names_the_rule_that_took_the_gaussians():
+    screen, lines = _watched([{"pruned": 980, "pruned_big": 900, "pruned_big_screen": 900, "pruned_transparent": 80,
+                               "opacity_reset": 1}], plan=("init: 1000 random points (no SfM)",))
+    assert screen["collapsed"] and screen["final_gaussians"] == 20 and screen["fell_under_threshold_at"] == 1
+    assert screen["likely_cause"].startswith("Gaussians pruned as too big on screen (900 of 980 pruned")
+    assert "random points" in screen["likely_cause"] and "docs/studies/fox-collapse.md" in screen["likely_cause"]
+    assert lines[0].startswith("step 1: 20 Gaussians left, 2.0 % of the peak 1000 (step 0)")
+    world, _ = _watched([{"pruned": 980, "pruned_big": 900, "pruned_transparent": 80}])
+    assert world["likely_cause"].startswith("Gaussians pruned as too big in the world (900 of 980")
+    assert "random points" not in world["likely_cause"]
+    clear, _ = _watched([{"pruned": 980, "pruned_transparent": 980}, {"cloned": 5}])
+    assert clear["likely_cause"].startswith("Gaussians pruned as transparent (980 of 980 pruned, 0 opacity reset(s))")
+    kept, lines = _watched([{"pruned": 960, "pruned_transparent": 960}, {"cloned": 960}])
+    assert not kept["collapsed"] and kept["fell_under_threshold_at"] == 1 and len(lines) == 1   # fell, then grew back
+
+
+def test_a_resumed_run_keeps_its_collapse_history():
+    from protocols.collapse import CollapseWatch
+
+    w = CollapseWatch.start(500)
+    w.totals["pruned"], w.fell_at, w.resets = 490, 30, 2
+    again = CollapseWatch.start(10)
+    again.restore(w.to_json())
+    assert again == w

@@ -80,7 +80,7 @@ def test_size_pruning_threshold_relative_to_extent():
     assert len(g) == 2
     st.max_radii = torch.tensor([5.0, 25.0])
     ev = st.densify_and_prune(g, opt, prune_big=True)
-    assert len(g) == 1 and ev.pruned == ev.pruned_big == 1 and ev.pruned_transparent == 0
+    assert len(g) == 1 and ev.pruned == ev.pruned_big == ev.pruned_big_screen == 1 and ev.pruned_transparent == 0
 
 
 def test_schedule_and_opacity_reset():

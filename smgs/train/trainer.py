@@ -235,6 +235,7 @@ class Trainer:
         if ev is not None and ev.changed():
             logs.update(cloned=float(ev.cloned), split=float(ev.split), pruned=float(ev.pruned),
                         pruned_transparent=float(ev.pruned_transparent), pruned_big=float(ev.pruned_big),
+                        pruned_big_screen=float(ev.pruned_big_screen),
                         opacity_reset=float(ev.reset))
             if ev.relocated or ev.added:
                 logs.update(relocated=float(ev.relocated), added=float(ev.added))

@@ -22,6 +22,7 @@ class RefineEvent:
     pruned: int = 0
     pruned_transparent: int = 0  # of ``pruned``: opacity under the threshold
     pruned_big: int = 0          # of ``pruned``: too big on screen or in the world (after a reset)
+    pruned_big_screen: int = 0   # of ``pruned_big``: too big on screen (``prune_screen_px``)
     reset: bool = False
     capped: int = 0          # candidates dropped because of the cap
     relocated: int = 0       # MCMC: dead Gaussians moved onto live ones

@@ -188,10 +188,13 @@ class DefaultStrategy:
         split_rows = torch.cat([split, split.new_zeros(n_new)])
         transparent = (g.opacities.detach() < c.prune_opacity) & ~split_rows
         drop = split_rows | transparent
+        n_screen = 0
         if prune_big:
-            radii = torch.cat([self.max_radii, self.max_radii.new_zeros(n_new)])
             if c.prune_screen_px is not None:
-                drop |= radii > c.prune_screen_px
+                radii = torch.cat([self.max_radii, self.max_radii.new_zeros(n_new)])
+                on_screen = (radii > c.prune_screen_px) & ~drop
+                n_screen = int(on_screen.sum())
+                drop |= on_screen
             drop |= g.scales.detach().max(dim=1).values > self.size_prune * self.extent
         n_pruned = int(drop.sum()) - n_split
         n_transparent = int(transparent.sum())
@@ -199,7 +202,7 @@ class DefaultStrategy:
             opt.keep(~drop)
         self._reset_stats(len(g))   # 3DGS zeroes every Gaussian's statistics after a refinement
         return RefineEvent(cloned=n_clone, split=n_split, pruned=n_pruned, pruned_transparent=n_transparent,
-                           pruned_big=n_pruned - n_transparent, capped=capped)
+                           pruned_big=n_pruned - n_transparent, pruned_big_screen=n_screen, capped=capped)
 
     @torch.no_grad()
     def reset_opacity(self, g: Gaussians, opt: GaussianOptimizer) -> None:
