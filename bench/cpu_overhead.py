@@ -3,6 +3,7 @@ called directly, forward + backward, in one process, interleaved call by call.
 
     python bench/cpu_overhead.py                       # 3dgs at 10k_256, 41 rounds
     python bench/cpu_overhead.py --modes 3dgs softmax_gs --rounds 61 --profile
+    python bench/cpu_overhead.py --blocks 16               # totals over 400 calls of each
 
 ``kernel alone``: the compiled projection's forward, the compiled renderer's forward and backward
 and the projection's backward (csrc/projection_cpu.cpp, csrc/cpu_kernel.cpp) on inputs prepared
@@ -123,6 +124,31 @@ def interleaved(fns: dict, rounds: int, warmup: int = 3) -> dict[str, list[float
     return ts, cpu_ts
 
 
+def blocks(fns: dict, n_blocks: int, per_block: int = 25) -> dict[str, tuple[float, float]]:
+    """(CPU ms, wall ms) per call of each function over ``n_blocks`` blocks of ``per_block`` calls,
+    the functions taking turns block by block (which goes first flips every block): totals over
+    hundreds of calls, steadier on a loaded machine than per-call medians."""
+    import resource
+
+    def cpu_s() -> float:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    for f in fns.values():
+        for _ in range(3):
+            f()
+    tot = {k: [0.0, 0.0] for k in fns}
+    for b in range(n_blocks):
+        for k, f in (list(fns.items()) if b % 2 == 0 else list(fns.items())[::-1]):
+            c0, t0 = cpu_s(), time.perf_counter()
+            for _ in range(per_block):
+                f()
+            tot[k][0] += cpu_s() - c0
+            tot[k][1] += time.perf_counter() - t0
+    n = n_blocks * per_block
+    return {k: (1e3 * c / n, 1e3 * w / n) for k, (c, w) in tot.items()}
+
+
 def profile_api(run) -> None:
     from torch.profiler import ProfilerActivity, profile
 
@@ -147,6 +173,8 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", nargs="+", default=["3dgs"])
     ap.add_argument("--rounds", type=int, default=41)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--blocks", type=int, default=0, help="instead of per-call rounds: N blocks of 25 calls "
+                    "of each, CPU time (getrusage) and wall time per call from the totals")
     ap.add_argument("--no-keep-freed-buffers", action="store_true",
                     help="leave glibc's malloc thresholds as they are (the trainer raises them, "
                          "smgs.train.allocator: freed image-sized buffers are reused instead of re-faulted)")
@@ -160,6 +188,15 @@ def main(argv=None) -> int:
 
     print(f"cpu {os.popen('lscpu').read().split('Model name:')[1].splitlines()[0].strip()}, isa {select_isa()}, "
           f"{torch.get_num_threads()} threads, load {os.getloadavg()[0]:.1f}")
+    if args.blocks:
+        print("| scene | mode | kernel alone CPU / wall ms | rasterize CPU / wall ms | ratio CPU | ratio wall |")
+        print("|---|---|--:|--:|--:|--:|")
+        for mode in args.modes:
+            r = blocks({"kernel": kernel_call(p, cam, mode), "api": api_call(p, cam, mode)}, args.blocks)
+            (kc, kw), (ac, aw) = r["kernel"], r["api"]
+            print(f"| {args.scene} | {mode} | {kc:.2f} / {kw:.2f} | {ac:.2f} / {aw:.2f} | {ac / kc:.3f} | "
+                  f"{aw / kw:.3f} |", flush=True)
+        return 0
     print("wall ms (median) / CPU ms of the process's threads (median), and each one's ratio to the kernel alone "
           "(median of per-round ratios)")
     print("| scene | mode | kernel alone | + autograd, gathers, loss | rasterize | ratio autograd | ratio rasterize |")

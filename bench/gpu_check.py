@@ -148,6 +148,11 @@ def start_gsplat_build(out: Path, device: str) -> subprocess.Popen | None:
     if probe.returncode != 0:
         return None
     env = {**os.environ, "MAX_JOBS": os.environ.get("MAX_JOBS", "12")}
+    if "TORCH_CUDA_ARCH_LIST" not in env:   # this GPU's architecture only: the build takes ~70 s, not minutes
+        import torch
+
+        if torch.cuda.is_available():
+            env["TORCH_CUDA_ARCH_LIST"] = "%d.%d" % torch.cuda.get_device_capability(0)
     code = ("import time, torch; t=time.perf_counter(); from gsplat.cuda._backend import _C; "
             "print('gsplat build', round(time.perf_counter()-t, 1), 's', _C is not None)")
     log = (out / "logs" / "gsplat_build.log").open("w")

@@ -63,7 +63,7 @@ def unpack(wheels: Path, site: Path, python: str) -> None:
         raise SystemExit(f"no wheels in {wheels}: run without --skip-download first")
     if site.exists():
         shutil.rmtree(site)
-    pip("install", "--no-index", "--target", str(site), *target_flags(python), *map(str, found))
+    pip("install", "--no-index", "--no-compile", "--target", str(site), *target_flags(python), *map(str, found))
 
 
 def copy_shared(shared: Path, dest: Path) -> None:
