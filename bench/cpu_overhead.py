@@ -88,7 +88,7 @@ def autograd_call(p, cam, mode):
     """The compiled passes through their autograd Functions, with the gathers and the loss, but
     without ``rasterize``'s checks, camera packing and backend choice."""
     from smgs.raster.cpu import _RasterizeCPU
-    from smgs.raster.kernel_args import composite_settings
+    from smgs.raster.composite_inputs import composite_settings
     from smgs.raster.projection import _ProjectCPU
 
     leaves = {k: v.clone().requires_grad_(True) for k, v in p.items()}

@@ -17,6 +17,7 @@ import torch
 
 from smgs.raster import constants as K
 from smgs.raster import cuda as cuda_backend
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
 from smgs.raster.reference import rasterize_splats_reference
 
 CSRC = Path(cuda_backend.__file__).parent / "csrc"
@@ -74,14 +75,10 @@ class StandInExtension:
         opt = lambda t: None if t.numel() == 0 else t  # noqa: E731
         ins = {k: (v[k].detach().clone().requires_grad_(grad) if v.get(k) is not None else None)
                for k in KEYS + ["reg_values"]}
-        out = self.render(
-            ins["means2d"], ins["conics"], ins["opacities"], ins["colors"], ins["depths"], ins["alpha"],
-            ins["beta"], ins["gamma"], v["width"], v["height"],
-            mode={(False, False): "3dgs", (True, False): "gef_only", (False, True): "softmax_only",
-                  (True, True): "softmax_gs"}[(v["use_gef"], v["use_softmax"])],
-            k_max=v["k_max"], background=opt(v["background"]), eq15="solved" if v["solved"] else "printed",
-            reg_values=ins.get("reg_values"), reg_depth_scale=v["reg_scale"],
-            k_max_scope="patch" if v["patch"] else "pixel")
+        st = CompositeSettings(v["width"], v["height"], v["use_gef"], v["use_softmax"], v["k_max"], v["solved"],
+                               v["reg_scale"], K.T_MIN, v["patch"])
+        out = self.render(Splats2D(*(ins[k] for k in KEYS), background=opt(v["background"]),
+                                   reg_values=ins.get("reg_values")), st)
         return out, ins
 
     def forward(self, *args):

@@ -14,7 +14,9 @@ from pathlib import Path
 
 import torch
 
+from smgs.raster import constants as K
 from smgs.raster import cuda_v2
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
 from smgs.raster.projection import _Project, _View
 from smgs.raster.reference import rasterize_splats_reference
 from smgs.raster.sh import eval_sh
@@ -22,6 +24,13 @@ from smgs.raster.sh import eval_sh
 CSRC = Path(cuda_v2.__file__).parent / "csrc"
 PYTYPE = {"at::Tensor": torch.Tensor, "int64_t": int, "bool": bool, "double": float, "std::vector<double>": list}
 LAYOUT = [0, 1, 2, 4, 5, 6, 7, 8, 9, 10]   # cuda_kernel.h's P_* (test_raster_cuda_v2_plumbing checks them)
+KEYS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")
+
+
+def _settings(v: dict, **kw) -> CompositeSettings:
+    """The compositing settings a binding call carries (t_min is compiled in: the default)."""
+    return CompositeSettings(v["width"], v["height"], v["use_gef"], v["use_softmax"], v["k_max"], v["solved"],
+                             v.get("reg_scale", 1.0), K.T_MIN, v["patch"], **kw)
 
 
 def params(src: str, fn: str) -> list[tuple[str, str]]:
@@ -122,14 +131,9 @@ class StandInCompositing(_Bound):
         keep = torch.ones(v["means2d"].shape[0], dtype=torch.bool) if v["radii"].numel() == 0 else \
             (v["radii"] != 0).any(1)
         pick = lambda t: None if t is None else t[keep]  # noqa: E731
-        mode = {(False, False): "3dgs", (True, False): "gef_only", (False, True): "softmax_only",
-                (True, True): "softmax_gs"}[(v["use_gef"], v["use_softmax"])]
         bg = v["background"] if v["background"].numel() else None
-        return rasterize_splats_reference(
-            *(pick(ins[k]) for k in ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")),
-            v["width"], v["height"], mode=mode, k_max=v["k_max"], background=bg,
-            eq15="solved" if v["solved"] else "printed", reg_values=pick(ins["reg_values"]),
-            reg_depth_scale=v["reg_scale"], k_max_scope="patch" if v["patch"] else "pixel")
+        splats = Splats2D(*(pick(ins[k]) for k in KEYS), background=bg, reg_values=pick(ins["reg_values"]))
+        return rasterize_splats_reference(splats, _settings(v))
 
     def forward(self, *args):
         v = self.bind("forward_v2", args)
@@ -174,19 +178,13 @@ class StandInCompositing(_Bound):
 
     # -- the per-pixel entries (cuda_pixel.cu): the CPU backend's re-sorting window ----------------------
     def _render_pixel(self, v, ins):
-        from smgs.raster import constants as K
         from smgs.raster.cpu import rasterize_splats_cpu
         from smgs.raster.types import RayDepth
 
         assert v["lead_alpha"] in (-1.0, K.LEADER_ALPHA), v["lead_alpha"]
-        mode = {(False, False): "3dgs", (True, False): "gef_only", (False, True): "softmax_only",
-                (True, True): "softmax_gs"}[(v["use_gef"], v["use_softmax"])]
         bg = v["background"] if v["background"].numel() else None
-        return rasterize_splats_cpu(
-            *(ins[k] for k in ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")),
-            v["width"], v["height"], mode=mode, k_max=v["k_max"], background=bg,
-            eq15="solved" if v["solved"] else "printed", ray_depth=RayDepth(v["coefs"], *v["intr"]),
-            window=v["window"], leaders=v["lead_alpha"] >= 0, k_max_scope="patch" if v["patch"] else "pixel")
+        splats = Splats2D(*(ins[k] for k in KEYS), background=bg, ray_depth=RayDepth(v["coefs"], *v["intr"]))
+        return rasterize_splats_cpu(splats, _settings(v, leaders=v["lead_alpha"] >= 0, window=v["window"]))
 
     def forward_pixel(self, *args):
         v = self.bind("forward_pixel_v2", args)

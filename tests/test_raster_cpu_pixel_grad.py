@@ -16,6 +16,7 @@ import torch
 
 from smgs import Camera
 from smgs.raster import MODES, rasterize, rasterize_splats
+from smgs.raster.composite_inputs import Splats2D, composite_settings
 from smgs.raster.projection import project_gaussians, quat_to_rotmat
 from smgs.raster.ray_depth import ray_depth
 
@@ -80,8 +81,8 @@ def _render_and_grad(ins: dict, rd, cam: Camera, mode: str, backend: str, window
     bg = None if background is None else background.clone().requires_grad_(True)
     args = [leaves[k] for k in KEYS] + [cam.width, cam.height]
     if backend == "cpu":
-        out = cpu.rasterize_splats_cpu(*args, mode=mode, k_max=k_max, background=bg, ray_depth=rd, window=window,
-                                       k_max_scope=scope)
+        out = cpu.rasterize_splats_cpu(Splats2D(*args[:8], background=bg, ray_depth=rd),
+                                       composite_settings(*args[8:], mode, k_max, k_max_scope=scope, window=window))
     else:
         out = rasterize_splats(*args, mode=mode, k_max=k_max, background=bg, backend=backend, ray_depth=rd,
                                k_max_scope=scope)

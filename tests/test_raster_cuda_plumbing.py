@@ -19,6 +19,7 @@ from cuda_standin import BINDING, KEYS, PYTYPE, StandInExtension, cpp_params, py
 from smgs.raster import backend_available, resolve_backend
 from smgs.raster import constants as K
 from smgs.raster import cuda as cuda_backend
+from smgs.raster.composite_inputs import Splats2D, composite_settings
 from smgs.raster.reference import rasterize_splats_reference
 from smgs.raster.types import MODES, mode_flags
 
@@ -61,11 +62,14 @@ def scene(n=12, w=21, h=17, n_ch=3, n_reg=0, seed=0):
 
 
 def run(fn, sc, w, h, mode, **kw):
+    """``fn(splats, settings)`` on the scene's splats, with its images' random-weighted loss
+    back-propagated."""
     names = KEYS + (["reg_values"] if "reg_values" in sc else [])
     ins = {k: sc[k].clone().requires_grad_(True) for k in names}
     bg = torch.tensor([0.2, 0.5, 0.7][:sc["colors"].shape[1]], requires_grad=True)
-    out = fn(*[ins[k] for k in KEYS], w, h, mode, kw.pop("k_max", 3), bg, kw.pop("eq15", "solved"),
-             ins.get("reg_values"), kw.pop("reg_depth_scale", 1.0), K.T_MIN, kw.pop("scope", "pixel"))
+    st = composite_settings(w, h, mode, kw.pop("k_max", 3), kw.pop("eq15", "solved"), kw.pop("reg_depth_scale", 1.0),
+                            K.T_MIN, kw.pop("scope", "pixel"))
+    out = fn(Splats2D(*[ins[k] for k in KEYS], background=bg, reg_values=ins.get("reg_values")), st)
     g = torch.Generator().manual_seed(9)
     loss = sum((t * torch.rand(t.shape, generator=g)).sum() for t in (out.rgb, out.alpha, out.depth))
     if out.reg is not None:
@@ -81,16 +85,11 @@ def test_wrapper_plumbing_matches_the_reference(mode, n_ch, n_reg, eq15, scope):
     sc = scene(n_ch=n_ch, n_reg=n_reg)
     ext = StandInExtension()
 
-    def via_wrapper(*a):
-        return cuda_backend.composite(ext, *a)
-
-    def via_reference(m2, co, op, col, de, al, be, ga, w, h, mode, k_max, bg, eq, rv, rs, t_min, scope):
-        return rasterize_splats_reference(m2, co, op, col, de, al, be, ga, w, h, mode=mode, k_max=k_max,
-                                          background=bg, eq15=eq, reg_values=rv, reg_depth_scale=rs, t_min=t_min,
-                                          k_max_scope=scope)
+    def via_wrapper(splats, st):
+        return cuda_backend.composite(ext, splats, st)
 
     ow, gw = run(via_wrapper, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6, scope=scope)
-    orf, gr = run(via_reference, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6, scope=scope)
+    orf, gr = run(rasterize_splats_reference, sc, 21, 17, mode, eq15=eq15, reg_depth_scale=0.6, scope=scope)
     assert ext.calls == ["forward_torch", "backward_torch"]
     for a, b in ((ow.rgb, orf.rgb), (ow.alpha, orf.alpha), (ow.depth, orf.depth)):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
@@ -127,7 +126,8 @@ def test_wrapper_with_no_splats_renders_the_background_without_calling_the_kerne
                beta=z(0), gamma=z(0))
     rv = z(0, 2)
     bg = torch.tensor([0.2, 0.5, 0.7], requires_grad=True)
-    out = cuda_backend.composite(ext, *ins.values(), 21, 17, mode, 3, bg, "solved", rv, 1.0)
+    out = cuda_backend.composite(ext, Splats2D(*ins.values(), background=bg, reg_values=rv),
+                                 composite_settings(21, 17, mode, 3))
     assert ext.calls == []
     assert torch.equal(out.rgb, bg.detach().expand(17, 21, 3)) and not out.alpha.any() and not out.depth.any()
     assert out.reg.shape == (17, 21, 5) and not out.reg.any() and out.stats.pairs_evaluated == 0

@@ -21,6 +21,7 @@ from smgs import Camera
 from smgs.raster import MODES, rasterize
 from smgs.raster import constants as K
 from smgs.raster import stability
+from smgs.raster.composite_inputs import Splats2D, composite_settings
 
 pytestmark = pytest.mark.gpu
 
@@ -137,7 +138,8 @@ def test_v2_radii_leave_rows_out():
     keep[::3] = False
     radii = torch.where(keep[:, None], torch.full((60, 2), 5.0), torch.zeros(60, 2)).to(DEV)
     ins = {k: sc[k].to(DEV).clone().requires_grad_(True) for k in KEYS}
-    out = cuda_v2.rasterize_splats_cuda_v2(*[ins[k] for k in KEYS], W, H, mode="softmax_gs", k_max=4, radii=radii)
+    out = cuda_v2.rasterize_splats_cuda_v2(Splats2D(*[ins[k] for k in KEYS], radii=radii),
+                                           composite_settings(W, H, "softmax_gs", 4))
     (out.rgb.sum() + out.alpha.sum()).backward()
     kept = {k: sc[k][keep].to(DEV).clone().requires_grad_(True) for k in KEYS}
     from smgs.raster import rasterize_splats
@@ -256,7 +258,7 @@ def test_fused_3d_path_synchronises_once_per_forward():
     for mode in ("3dgs", "softmax_gs"):
         p = {k: v.to(DEV).clone().requires_grad_(True) for k, v in params.items()}
         args = (p["means3d"], p["quats"], p["scales"], p["opacities"], p["sh"], cam, p["alpha"], p["beta"],
-                p["gamma"], mode, 3, 1, None, "solved", None, 1.0, K.NEAR_PLANE, K.EPS2D, True, K.T_MIN)
+                p["gamma"], None, None, composite_settings(40, 30, mode, 3), 1, K.NEAR_PLANE, K.EPS2D, True)
         cuda_v2.rasterize_fused(*args)   # builds and warms up
         torch.cuda.synchronize()
         syncs = []
@@ -352,7 +354,8 @@ def test_v2_per_pixel_window_of_one_is_the_global_order():
 
     ins = {k: v.to(DEV) for k, v in sc.items()}
     args = [ins[k] for k in KEYS]
-    w1 = cuda_v2.rasterize_splats_pixel_cuda(*args, 40, 30, mode="softmax_gs", k_max=4, ray_depth=rd_dev, window=1)
-    glob = cuda_v2.rasterize_splats_cuda_v2(*args, 40, 30, mode="softmax_gs", k_max=4)
+    w1 = cuda_v2.rasterize_splats_pixel_cuda(Splats2D(*args, ray_depth=rd_dev),
+                                             composite_settings(40, 30, "softmax_gs", 4, window=1))
+    glob = cuda_v2.rasterize_splats_cuda_v2(Splats2D(*args), composite_settings(40, 30, "softmax_gs", 4))
     assert torch.equal(w1.stats.n_contrib, glob.stats.n_contrib)
     torch.testing.assert_close(w1.rgb, glob.rgb, rtol=0, atol=OUT_ATOL32)

@@ -17,6 +17,7 @@ from cuda_v2_standin import CSRC, LAYOUT, PYTYPE, StandInCompositing, StandInPro
 from smgs.camera import Camera
 from smgs.raster import constants as K
 from smgs.raster import cuda_v2, rasterize, rasterize_splats
+from smgs.raster.composite_inputs import Splats2D, composite_settings
 from smgs.raster.types import MODES
 
 def _scene(n: int, seed: int, sh_degree: int | None):
@@ -34,20 +35,17 @@ def _scene(n: int, seed: int, sh_degree: int | None):
 
 def _render(sc, cam, mode, via_fused: bool, sh_degree, **kw):
     leaves = {k: t.clone().requires_grad_(True) for k, t in sc.items()}
-    common = dict(mode=mode, k_max=4, sh_degree=sh_degree, background=None, eq15="solved", reg_values=None,
-                  reg_depth_scale=1.0, near_plane=K.NEAR_PLANE, eps2d=K.EPS2D, clamp_sh_colors=True, t_min=K.T_MIN,
-                  **kw)
     if via_fused:
         exts = (StandInProjection(), StandInCompositing())
+        st = composite_settings(cam.width, cam.height, mode, 4, **kw)
         out = cuda_v2.rasterize_fused(leaves["means3d"], leaves["quats"], leaves["scales"], leaves["opacities"],
                                       leaves["colors_or_sh"], cam, leaves["alpha"], leaves["beta"], leaves["gamma"],
-                                      exts=exts, **common)
+                                      None, None, st, sh_degree, K.NEAR_PLANE, K.EPS2D, True, exts=exts)
     else:
         exts = ()
-        common.pop("clamp_sh_colors")
         out = rasterize(leaves["means3d"], leaves["quats"], leaves["scales"], leaves["opacities"],
                         leaves["colors_or_sh"], cam, leaves["alpha"], leaves["beta"], leaves["gamma"],
-                        backend="reference", **common)
+                        mode=mode, k_max=4, sh_degree=sh_degree, backend="reference", **kw)
     g = torch.Generator().manual_seed(3)
     loss = sum((t * torch.rand(t.shape, generator=g)).sum() for t in (out.rgb, out.alpha, out.depth))
     loss.backward()
@@ -161,8 +159,8 @@ def test_per_pixel_plumbing_matches_the_cpu_window(mode, sorted_per_pixel, leade
         args = [ins[k] for k in ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")]
         if via_v2:
             ext = StandInCompositing()
-            out = cuda_v2.composite_pixel(ext, *args, 23, 19, mode, 4, bg, "solved", None, 1.0, K.T_MIN, scope, rd,
-                                          K.SORT_WINDOW, K.LEADER_ALPHA if leaders else None)
+            out = cuda_v2.composite_pixel(ext, Splats2D(*args, background=bg, ray_depth=rd),
+                                          composite_settings(23, 19, mode, 4, k_max_scope=scope, leaders=leaders))
             assert ext.calls == ["forward_pixel_v2"]
         else:
             out = rasterize_splats(*args, 23, 19, mode=mode, k_max=4, background=bg, backend="cpu", ray_depth=rd,

@@ -7,6 +7,7 @@ import torch
 
 from smgs.raster import MODES, rasterize
 from smgs.raster import constants as K
+from smgs.raster.composite_inputs import Splats2D, composite_settings
 from test_raster_sort import _camera, _crowded
 
 
@@ -67,7 +68,8 @@ def test_cpu_leaders_match_the_reference_in_both_orders(mode, cpu_backend):
     rd = ray_depth(sc["means3d"][ids], sc["quats"][ids], sc["scales"][ids], cam)
     args = (proj.means2d, proj.conics, sc["opacities"][ids], sc["colors_or_sh"][ids], proj.depths,
             sc["alpha"][ids], sc["beta"][ids], sc["gamma"][ids], cam.width, cam.height)
-    exact = cpu_backend.rasterize_splats_cpu(*args, mode=mode, k_max=8, ray_depth=rd, window=100_000, leaders=True)
+    exact = cpu_backend.rasterize_splats_cpu(Splats2D(*args[:8], ray_depth=rd),
+                                             composite_settings(*args[8:], mode, 8, leaders=True, window=100_000))
     ref_pp = rasterize_splats(*args, mode=mode, k_max=8, backend="reference", ray_depth=rd, leaders=True)
     assert torch.equal(exact.leaders, ref_pp.leaders)
     assert not torch.equal(ref_pp.leaders, ref.leaders)   # the two orders differ somewhere

@@ -9,6 +9,7 @@ import torch
 
 from smgs.camera import Camera
 from smgs.raster import MODES, rasterize
+from smgs.raster.composite_inputs import Splats2D, composite_settings
 from smgs.raster.projection import quat_to_rotmat
 from smgs.raster.ray_depth import ray_depth
 from smgs.raster.reference import peak_depth
@@ -216,7 +217,8 @@ def _cpu_pixel(sc, mode, window, cam):
             sc["alpha"][ids], sc["beta"][ids], sc["gamma"][ids], cam.width, cam.height)
     from smgs.raster import cpu
 
-    cpu_out = cpu.rasterize_splats_cpu(*args, mode=mode, k_max=8, ray_depth=rd, window=window)
+    cpu_out = cpu.rasterize_splats_cpu(Splats2D(*args[:8], ray_depth=rd),
+                                       composite_settings(*args[8:], mode, 8, window=window))
     return cpu_out, rasterize_splats(*args, mode=mode, k_max=8, backend="reference", ray_depth=rd), \
         rasterize_splats(*args, mode=mode, k_max=8, backend="cpu")
 

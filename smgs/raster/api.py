@@ -10,15 +10,17 @@ import torch
 from smgs.camera import Camera
 from smgs.raster import checks
 from smgs.raster import constants as K
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D, composite_settings
 from smgs.raster.cuda_v2 import kernel_choice
 from smgs.raster.device_glue import lean, to_device
 from smgs.raster.projection import VIEW_FLOATS, host_view, project_gaussians
 from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import eval_sh
-from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats, mode_flags, scope_is_patch
+from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats
 
-# name -> (module, function); every backend takes the same arguments, t_min included. Imported
-# lazily so that listing backends never compiles or loads a kernel.
+# name -> (module, function); every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
+# (smgs.raster.composite_inputs). Imported lazily so that listing backends never compiles or loads
+# a kernel.
 _BACKENDS: dict[str, tuple[str, str]] = {
     "reference": ("smgs.raster.reference", "rasterize_splats_reference"),
     "cpu": ("smgs.raster.cpu", "rasterize_splats_cpu"),
@@ -78,10 +80,22 @@ def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype
 BACKEND_NAMES: tuple[str, ...] = tuple(_BACKENDS)
 
 
-def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode,
-                  background=None, reg_values=None, chk: checks.InputChecks | None = None) -> None:
+def _mode_inputs(st: CompositeSettings, n: int, alpha, beta, gamma) -> list[tuple[str, torch.Tensor]]:
+    """The per-splat parameters the mode uses (α with GEF, β and γ with softmax), each [N]."""
+    needed = ([("alpha", alpha)] if st.use_gef else []) + ([("beta", beta), ("gamma", gamma)] if st.use_softmax else [])
+    for name, t in needed:
+        if t is None:
+            raise ValueError(f"mode {st.mode!r} needs {name} [N]; got None")
+        if t.shape != (n,):
+            raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+    return needed
+
+
+def _check_inputs(sp: Splats2D, st: CompositeSettings, chk: checks.InputChecks | None = None) -> None:
     """Shapes, dtypes and finiteness (``smgs.raster.checks`` has the policy), before any backend
     (the finiteness through ``chk`` where given, which may decide it after the render)."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma = sp.per_splat()
+    background, reg_values = sp.background, sp.reg_values
     named = [("means2d", means2d), ("conics", conics), ("opacities", opacities), ("colors", colors),
              ("depths", depths), ("alpha", alpha), ("beta", beta), ("gamma", gamma)]
     checks.float_dtypes(named)
@@ -94,13 +108,7 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
         raise ValueError("opacities and depths must be [N]")
     if colors.dim() != 2 or colors.shape[0] != n or colors.shape[1] < 1:
         raise ValueError(f"colors must be [N,C] with C >= 1, got {tuple(colors.shape)}")
-    use_gef, use_softmax = mode_flags(mode)
-    needed = ([("alpha", alpha)] if use_gef else []) + ([("beta", beta), ("gamma", gamma)] if use_softmax else [])
-    for name, t in needed:
-        if t is None:
-            raise ValueError(f"mode {mode!r} needs {name} [N]; got None")
-        if t.shape != (n,):
-            raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+    _mode_inputs(st, n, alpha, beta, gamma)
     if background is not None and background.numel() != colors.shape[1]:
         raise ValueError(f"background must have {colors.shape[1]} channels (one per colour), "
                          f"got {background.numel()}")
@@ -108,7 +116,7 @@ def _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma
     for name, t in named[1:] + [("reg_values", reg_values)]:   # the background is moved where needed
         if t is not None and t.device != dev:
             raise TypeError(f"{name} is on {t.device} but means2d is on {dev}; give every input one device")
-    used = {"alpha": use_gef, "beta": use_softmax, "gamma": use_softmax}
+    used = {"alpha": st.use_gef, "beta": st.use_softmax, "gamma": st.use_softmax}
     (chk or checks.InputChecks()).finite([(k, t) for k, t in named if used.get(k, True)]
                                          + [("background", background), ("reg_values", reg_values)],
                                          pos_inf_ok=("gamma",))
@@ -123,18 +131,14 @@ def _per_pixel_backend(device: torch.device, dtype: torch.dtype, reg_values: tor
     return "reference"
 
 
-def _on_host(*args, **kwargs) -> RenderOutput:
-    """``rasterize_splats`` on host copies of its tensors through the cpu backend (the reference
-    where that does not apply), the outputs moved back to the inputs' device: for what the CUDA
-    backend has no kernel for. The copies are differentiable, so gradients flow back to the device."""
-    device = args[0].device
-    host = lambda t: t.cpu() if isinstance(t, torch.Tensor) else t  # noqa: E731
-    rd = kwargs.get("ray_depth")
-    if rd is not None:
-        kwargs["ray_depth"] = RayDepth(rd.coefs.detach().cpu(), rd.fx, rd.fy, rd.cx, rd.cy)
-    on_cpu = kwargs.get("reg_values") is None and backend_available("cpu", "cpu", args[0].dtype)
-    out = rasterize_splats(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()},
-                           backend="cpu" if on_cpu else "reference")
+def _on_host(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
+    """The compositing on host copies of the splats through the cpu backend (the reference where
+    that does not apply), the outputs moved back to the inputs' device: for what the CUDA backend
+    has no kernel for. The copies are differentiable, so gradients flow back to the device."""
+    device = splats.means2d.device
+    host = splats.mapped(lambda t: t.cpu())
+    on_cpu = host.reg_values is None and backend_available("cpu", "cpu", host.means2d.dtype)
+    out = _composite(host, st, "cpu" if on_cpu else "reference", "default", checks.InputChecks())
     if device.type == "cpu":
         return out
     move = lambda t: None if t is None else t.to(device)  # noqa: E731
@@ -193,55 +197,44 @@ def rasterize_splats(
     ``"v2"``, ``ray_depth`` and ``leaders`` on CUDA tensors run on the GPU (the CPU window's twin,
     windows up to 32 splats, no ``reg_values``) instead of on host copies.
     """
-    return _rasterize_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
-                             k_max, background, backend, eq15, reg_values, reg_depth_scale, t_min, ray_depth,
-                             leaders, k_max_scope, cuda_kernels, checks.InputChecks(defer=lean(means2d.device)))
-
-
-def _rasterize_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
-                      background, backend, eq15, reg_values, reg_depth_scale, t_min, ray_depth, leaders,
-                      k_max_scope, cuda_kernels, chk: checks.InputChecks) -> RenderOutput:
-    """``rasterize_splats`` with its input checks in ``chk`` (``rasterize`` adds the 3D inputs'):
-    decided before the backend runs, or, deferred (the lean GPU glue), read right after it."""
     kernels = kernel_choice(cuda_kernels)
-    _check_inputs(means2d, conics, opacities, colors, depths, alpha, beta, gamma, mode, background, reg_values, chk)
-    width, height = checks.image_size(width, height)
-    if eq15 not in ("solved", "printed"):
-        raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
-    if k_max < 0:
-        raise ValueError(f"k_max must be >= 0, got {k_max}")
-    scope_is_patch(k_max_scope)   # refuses an unknown scope
-    if not 0.0 <= t_min < 1.0:
-        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope, leaders)
+    splats = Splats2D(means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values,
+                      ray_depth)
+    return _composite(splats, st, backend, kernels, checks.InputChecks(defer=lean(means2d.device)))
+
+
+def _composite(splats: Splats2D, st: CompositeSettings, backend: str, kernels: str,
+               chk: checks.InputChecks) -> RenderOutput:
+    """``rasterize_splats`` with its settings made and its input checks in ``chk`` (``rasterize``
+    adds the 3D inputs'): decided before the backend runs, or, deferred (the lean GPU glue), read
+    right after it."""
+    _check_inputs(splats, st, chk)
+    means2d, ray_depth = splats.means2d, splats.ray_depth
     if ray_depth is not None:
-        if ray_depth.coefs.shape != (means2d.shape[0], 9):
-            raise ValueError(f"ray_depth.coefs must be [N,9] for the N={means2d.shape[0]} splats, "
+        if ray_depth.coefs.shape != (splats.n, 9):
+            raise ValueError(f"ray_depth.coefs must be [N,9] for the N={splats.n} splats, "
                              f"got {tuple(ray_depth.coefs.shape)}")
         if backend == "cuda" and kernels != "v2":
             raise ValueError("sort='per_pixel' has no CUDA kernel among the default ones; use the opt-in kernels "
                              "(cuda_kernels='v2', docs/cuda.md), backend='reference' or 'auto'")
     # the opt-in kernels order each pixel (and give the leading-splat map) on the GPU itself
-    pixel_on_gpu = (kernels == "v2" and (ray_depth is not None or leaders) and reg_values is None
+    pixel_on_gpu = (kernels == "v2" and (ray_depth is not None or st.leaders) and splats.reg_values is None
                     and backend in ("auto", "cuda")
                     and resolve_backend(backend, means2d.device, means2d.dtype) == "cuda")
     if ray_depth is not None and backend == "auto" and not pixel_on_gpu:   # cpu, reference, or "host"
-        name = _per_pixel_backend(means2d.device, means2d.dtype, reg_values)
+        name = _per_pixel_backend(means2d.device, means2d.dtype, splats.reg_values)
     else:
         name = resolve_backend(backend, means2d.device, means2d.dtype)
-    if name == "host" or (leaders and name == "cuda" and not pixel_on_gpu):
+    if name == "host" or (st.leaders and name == "cuda" and not pixel_on_gpu):
         fn = _on_host
     else:
         fn = _load_backend(name)
     if pixel_on_gpu:
         from smgs.raster.cuda_v2 import rasterize_splats_pixel_cuda as fn
-    elif name == "cuda" and kernels == "v2" and ray_depth is None and not leaders:
+    elif name == "cuda" and kernels == "v2" and ray_depth is None and not st.leaders:
         from smgs.raster.cuda_v2 import rasterize_splats_cuda_v2 as fn
-    extra = {} if ray_depth is None else {"ray_depth": ray_depth}
-    if leaders:
-        extra["leaders"] = True
-    return _settled(chk, fn, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                    mode=mode, k_max=k_max, background=background, eq15=eq15, reg_values=reg_values,
-                    reg_depth_scale=reg_depth_scale, t_min=t_min, k_max_scope=k_max_scope, **extra)
+    return _settled(chk, fn, splats, st)
 
 
 def _settled(chk: checks.InputChecks, fn: Callable[..., RenderOutput], *args, **kwargs) -> RenderOutput:
@@ -258,25 +251,12 @@ def _settled(chk: checks.InputChecks, fn: Callable[..., RenderOutput], *args, **
     return out
 
 
-def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
-                        eq15: str, k_max: int, t_min: float) -> list[tuple[str, torch.Tensor | None]]:
+def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
+                        st: CompositeSettings) -> list[tuple[str, torch.Tensor | None]]:
     """What ``rasterize_splats`` checks of the inputs that the fused path hands to the compositing
     without going through it (the 2D splats are the kernel's own); returns those whose finiteness
     the caller checks (γ may be +inf)."""
-    if eq15 not in ("solved", "printed"):
-        raise ValueError(f"eq15 must be 'solved' or 'printed', got {eq15!r}")
-    if k_max < 0:
-        raise ValueError(f"k_max must be >= 0, got {k_max}")
-    if not 0.0 <= t_min < 1.0:
-        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
-    n = means3d.shape[0]
-    use_gef, use_softmax = mode_flags(mode)
-    needed = ([("alpha", alpha)] if use_gef else []) + ([("beta", beta), ("gamma", gamma)] if use_softmax else [])
-    for name, t in needed:
-        if t is None:
-            raise ValueError(f"mode {mode!r} needs {name} [N]; got None")
-        if t.shape != (n,):
-            raise ValueError(f"{name} must be [N], got {tuple(t.shape)}")
+    needed = _mode_inputs(st, means3d.shape[0], alpha, beta, gamma)
     checks.float_dtypes([("means3d", means3d), *needed])
     nch = colors_or_sh.shape[-1]
     if background is not None and background.numel() != nch:
@@ -359,19 +339,20 @@ def rasterize(
     # the fused path hands the per-Gaussian inputs to its compositing without rasterize_splats'
     # checks: they are checked here, in the same finiteness pass (one synchronisation, or none
     # with the lean glue: read after the render)
-    more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, mode, background, reg_values,
-                               eq15, k_max, t_min) if fused else []
+    st = composite_settings(camera.width, camera.height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope,
+                            leaders)
+    more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
+                               st) if fused else []
     chk = checks.InputChecks(defer=lean_glue)
     chk.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
                 ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more], pos_inf_ok=("gamma",))
     chk.non_negative("scales", scales)
-    checks.image_size(camera.width, camera.height)
     if fused:
         from smgs.raster.cuda_v2 import rasterize_fused
 
         return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, colors_or_sh, camera, alpha, beta,
-                        gamma, mode, k_max, _sh_degree(sh_degree, colors_or_sh), background, eq15, reg_values,
-                        reg_depth_scale, near_plane, eps2d, clamp_sh_colors, t_min, k_max_scope)
+                        gamma, background, reg_values, st, _sh_degree(sh_degree, colors_or_sh), near_plane, eps2d,
+                        clamp_sh_colors)
     _sh_degree(sh_degree, colors_or_sh)
     # The camera packed on the host (with the centre where SH needs it) and copied over once.
     view = to_device(host_view(camera, means3d.dtype, center=sh_degree is not None), device)
@@ -401,9 +382,9 @@ def rasterize(
     opac = opacities * proj.visible if dense else pick(opacities)
     means2d = proj.means2d
     rd = ray_depth(means3d[ids], quats[ids], scales[ids], camera) if sort == "per_pixel" else None
-    out = _rasterize_splats(means2d, proj.conics, opac, colors, proj.depths, pick(alpha), pick(beta), pick(gamma),
-                            camera.width, camera.height, mode, k_max, background, backend, eq15, pick(reg_values),
-                            reg_depth_scale, t_min, rd, leaders, k_max_scope, cuda_kernels, chk)
+    splats = Splats2D(means2d, proj.conics, opac, colors, proj.depths, pick(alpha), pick(beta), pick(gamma),
+                      background, pick(reg_values), rd)
+    out = _composite(splats, st, backend, kernels, chk)
     if out.leaders is not None and ids.numel():   # projected index -> the caller's index (none: all -1)
         out.leaders = torch.where(out.leaders >= 0, ids[out.leaders.clamp_min(0)], out.leaders)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)

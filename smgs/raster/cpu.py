@@ -25,10 +25,10 @@ from pathlib import Path
 import torch
 
 from smgs.raster import constants as K
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
 from smgs.raster.cpu_build import cpu_extension
-from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
-                                     kernel_output, no_splats, output_grads)
-from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput
+from smgs.raster.kernel_args import kernel_grads, kernel_inputs, kernel_output, no_splats, output_grads
+from smgs.raster.types import RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # The torch glue first; the compositing core's three units build in parallel with it (ninja).
@@ -131,8 +131,7 @@ class _RasterizePixelCPU(torch.autograd.Function):
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 5
 
 
-def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None, window: int,
-               lead_alpha: float | None) -> RenderOutput:
+def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None) -> RenderOutput:
     """The per-pixel kernel (csrc/cpu_pixel.cpp), with gradients: sort="per_pixel" through the
     re-sorting window, or (``ray_depth`` None) the global order, for the leading-splat map: zero
     peak-depth coefficients make every key the centre depth, which the window keeps in order."""
@@ -141,6 +140,7 @@ def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None, w
     if reg_values is not None:
         raise ValueError(f"{what} on the cpu backend has no variance-regulariser sums (reg_values); "
                          "render without reg_values or with backend='reference'")
+    window = st.window
     if ray_depth is None:
         coefs, intr = means2d.new_zeros(means2d.shape[0], 9), means2d.new_tensor([1.0, 1.0, 0.0, 0.0])
         window = 1
@@ -149,46 +149,21 @@ def _per_pixel(st: CompositeSettings, args: tuple, ray_depth: RayDepth | None, w
         intr = means2d.new_tensor([ray_depth.fx, ray_depth.fy, ray_depth.cx, ray_depth.cy])   # on its device
     rgb, alpha_out, depth, cnt, pairs, _, leaders, list_end = _RasterizePixelCPU.apply(
         means2d, conics, opacities, colors, depths, alpha, beta, gamma, bg, coefs, intr, st, int(window),
-        -1.0 if lead_alpha is None else float(lead_alpha))
-    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if lead_alpha is not None else None,
-                         list_end)
+        K.LEADER_ALPHA if st.leaders else -1.0)
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if st.leaders else None, list_end)
 
 
-def rasterize_splats_cpu(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    depths: torch.Tensor,
-    alpha: torch.Tensor | None,
-    beta: torch.Tensor | None,
-    gamma: torch.Tensor | None,
-    width: int,
-    height: int,
-    mode: str = "softmax_gs",
-    k_max: int = K.DEFAULT_K_MAX,
-    background: torch.Tensor | None = None,
-    eq15: Eq15 = "solved",
-    reg_values: torch.Tensor | None = None,
-    reg_depth_scale: float = 1.0,
-    t_min: float = K.T_MIN,
-    ray_depth: RayDepth | None = None,
-    window: int = K.SORT_WINDOW,
-    leaders: bool = False,
-    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-) -> RenderOutput:
+def rasterize_splats_cpu(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     """Composite projected splats on the CPU: float32 CPU tensors, checked by
     ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. With
-    ``ray_depth``: per-pixel order through a re-sorting window of ``window`` splats (no
-    ``reg_values``). ``leaders`` renders through the per-pixel kernel (a scalar path, in either
+    ``splats.ray_depth``: per-pixel order through a re-sorting window of ``st.window`` splats (no
+    ``reg_values``). ``st.leaders`` renders through the per-pixel kernel (a scalar path, in either
     order) to give the leading-splat map too."""
-    if means2d.shape[0] == 0:   # nothing to composite (smgs.raster.kernel_args.no_splats)
-        return no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
-                         k_max, background, eq15, reg_values, reg_depth_scale, t_min, leaders, k_max_scope)
-    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
-    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
-    if ray_depth is not None or leaders:
-        return _per_pixel(st, args, ray_depth, window, K.LEADER_ALPHA if leaders else None)
+    if splats.n == 0:   # nothing to composite (smgs.raster.kernel_args.no_splats)
+        return no_splats(splats, st)
+    args = kernel_inputs(splats, st)
+    if splats.ray_depth is not None or st.leaders:
+        return _per_pixel(st, args, splats.ray_depth)
     rgb, alpha_out, depth, reg, cnt, pairs, _, list_end = _RasterizeCPU.apply(*args, st)
-    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs,
+    return kernel_output(st, rgb, alpha_out, depth, reg if splats.reg_values is not None else None, cnt, pairs,
                          list_end=list_end)

@@ -8,8 +8,9 @@ backend (``smgs.raster.buildcache``, keyed by the sources, flags and GPU archs).
 (tensors and the binning pipeline's host steps) and ``csrc/splat_math.h``, the per-splat math the CPU
 kernel includes too, so the GPU runs the math the CPU tests check.
 
-The interface mirrors ``smgs.raster.cpu``: ``rasterize_splats_cuda`` takes the arguments of
-``smgs.raster.rasterize_splats`` (float32 CUDA tensors) and returns the same ``RenderOutput``.
+The interface mirrors ``smgs.raster.cpu``: ``rasterize_splats_cuda`` takes the splats and settings
+of ``smgs.raster.rasterize_splats`` (``composite_inputs``; float32 CUDA tensors) and returns the
+same ``RenderOutput``.
 Nothing here touches CUDA at import time, so importing this module is safe on any machine;
 ``is_available()`` is False with ``unavailable_reason()`` saying why. Set
 ``SMGS_DISABLE_CUDA_BACKEND=1`` to switch it off (``auto`` then falls back to the reference).
@@ -26,9 +27,9 @@ import torch
 from smgs.raster import constants as K
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
-from smgs.raster.kernel_args import (CompositeSettings, composite_settings, kernel_grads, kernel_inputs,
-                                     kernel_output, no_splats)
-from smgs.raster.types import Eq15, KMaxScope, RenderOutput
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
+from smgs.raster.kernel_args import kernel_grads, kernel_inputs, kernel_output, no_splats
+from smgs.raster.types import RenderOutput
 
 log = logging.getLogger(__name__)
 
@@ -91,80 +92,73 @@ def extension(t_min: float = K.T_MIN):
     return _JIT.module(t_min)
 
 
+def composite_forward(ctx, ext, inputs: tuple, st: CompositeSettings, *cull: torch.Tensor | None) -> tuple:
+    """The forward of a CUDA compositing Function (default or v2): ``ext.forward`` on the ten tensors
+    of ``kernel_args.INPUTS`` (empty where None), then ``cull`` (v2: the cull marks), then the
+    settings; keeps what the backward needs on ``ctx``."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values = inputs
+    empty = means2d.new_empty(0)
+    opt = lambda t: empty if t is None else t  # noqa: E731
+    rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, pk, ranges, tile_list = ext.forward(
+        means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
+        opt(reg_values), *(opt(t) for t in cull), st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
+        st.solved, st.reg_depth_scale, st.patch)
+    ctx.save_for_backward(alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, opt(background))
+    ctx.settings = st
+    ctx.ext = ext
+    ctx.n_splats = means2d.shape[0]
+    ctx.n_channels = colors.shape[1]
+    ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
+    ctx.mark_non_differentiable(cnt, pairs, t_final, last)
+    # `last` (1 + the tile-list position of the last composited splat) is the stats' list_end
+    return rgb, alpha_out, depth, reg, cnt, pairs, t_final, last
+
+
+def composite_backward(ctx, g_rgb, g_alpha, g_depth, g_reg, head_budget_bytes: int) -> tuple:
+    """``ext.backward``'s outputs for the image gradients, with the ``g_rgb`` and final transmittance
+    that ``kernel_args.kernel_grads`` reads the background's gradient from."""
+    alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg = ctx.saved_tensors
+    st = ctx.settings
+    g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
+    g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
+    grads = ctx.ext.backward(
+        g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg,
+        ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
+        st.solved, st.reg_depth_scale, head_budget_bytes, st.patch)
+    return grads, g_rgb, t_final
+
+
 class _RasterizeCUDA(torch.autograd.Function):
     """Same inputs and outputs as ``cpu._RasterizeCPU``, then the loaded extension."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background,
-                reg_values, settings: CompositeSettings, ext):
-        st = settings
-        empty = means2d.new_empty(0)
-        opt = lambda t: empty if t is None else t  # noqa: E731
-        rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, pk, ranges, tile_list = ext.forward(
-            means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
-            opt(reg_values), st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
-            st.reg_depth_scale, st.patch)
-        ctx.save_for_backward(alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, opt(background))
-        ctx.settings = st
-        ctx.ext = ext
-        ctx.n_splats = means2d.shape[0]
-        ctx.n_channels = colors.shape[1]
-        ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
-        ctx.mark_non_differentiable(cnt, pairs, t_final, last)
-        # `last` (1 + the tile-list position of the last composited splat) is the stats' list_end
-        return rgb, alpha_out, depth, reg, cnt, pairs, t_final, last
+    def forward(ctx, *args):   # the ten tensors of kernel_args.INPUTS, the settings, the extension
+        *inputs, st, ext = args
+        return composite_forward(ctx, ext, tuple(inputs), st)
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t, _g_last):
-        alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg = ctx.saved_tensors
-        st = ctx.settings
-        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
-        g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
-        grads = ctx.ext.backward(
-            g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg,
-            ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
-            st.solved, st.reg_depth_scale, HEAD_BUDGET_BYTES, st.patch)
+        grads, g_rgb, t_final = composite_backward(ctx, g_rgb, g_alpha, g_depth, g_reg, HEAD_BUDGET_BYTES)
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=2)
 
 
-def composite(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
-              k_max, background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN,
-              k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE) -> RenderOutput:
+def composite(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     """``rasterize_splats_cuda`` with the extension passed in (the argument plumbing is tested
-    without a GPU by passing a stand-in extension). ``t_min`` is already compiled into ``ext``."""
-    if means2d.shape[0] == 0:   # nothing to composite (kernel_args.no_splats); the kernel is not called
-        return no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode,
-                         k_max, background, eq15, reg_values, reg_depth_scale, t_min, k_max_scope=k_max_scope)
-    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
-    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    without a GPU by passing a stand-in extension). ``st.t_min`` is already compiled into ``ext``."""
+    if splats.ray_depth is not None or st.leaders or splats.radii is not None:
+        raise ValueError("the default CUDA kernels composite in the global order without the leading-splat map "
+                         "or cull marks; rasterize_splats routes those elsewhere (docs/cuda.md)")
+    if splats.n == 0:   # nothing to composite (kernel_args.no_splats); the kernel is not called
+        return no_splats(splats, st)
+    args = kernel_inputs(splats, st)
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDA.apply(*args, st, ext)
-    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs,
+    return kernel_output(st, rgb, alpha_out, depth, reg if splats.reg_values is not None else None, cnt, pairs,
                          list_end=last)
 
 
-def rasterize_splats_cuda(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    depths: torch.Tensor,
-    alpha: torch.Tensor | None,
-    beta: torch.Tensor | None,
-    gamma: torch.Tensor | None,
-    width: int,
-    height: int,
-    mode: str = "softmax_gs",
-    k_max: int = K.DEFAULT_K_MAX,
-    background: torch.Tensor | None = None,
-    eq15: Eq15 = "solved",
-    reg_values: torch.Tensor | None = None,
-    reg_depth_scale: float = 1.0,
-    t_min: float = K.T_MIN,
-    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-) -> RenderOutput:
+def rasterize_splats_cuda(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     """Composite projected splats on a CUDA device: float32 tensors on one device, checked by
-    ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. ``t_min``
+    ``smgs.raster.rasterize_splats`` (which has the arguments) before they arrive here. ``st.t_min``
     (the early-stop transmittance) is compiled into the kernel: a value other than the default
     costs one more build."""
-    return composite(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                     mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, k_max_scope)
+    return composite(extension(st.t_min), splats, st)

@@ -20,10 +20,12 @@ import torch
 
 from smgs.camera import Camera
 from smgs.raster import constants as K
+from smgs.raster import cuda
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
-from smgs.raster.kernel_args import CompositeSettings, composite_settings, kernel_grads, kernel_inputs, kernel_output
-from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
+from smgs.raster.kernel_args import kernel_grads, kernel_inputs, kernel_output
+from smgs.raster.types import RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # cuda_kernel.cu brings the default backend's binning (prepare, prefix sum, keys, sort, ranges)
@@ -53,18 +55,15 @@ def kernel_choice(cuda_kernels: str | None) -> str:
 
 
 def _why_not_buildable() -> str | None:
-    from smgs.raster import cuda
-
     return cuda._why_not_buildable()
 
 
 def _build(suffix: str = "", defines: tuple[str, ...] = ()):
-    from smgs.raster.cuda import _arch_tag
-
     return compile_and_load(ExtensionSpec(
         name=f"smgs_raster_cuda_v2{suffix}", sources=tuple(_CSRC / s for s in SOURCES),
         what="CUDA renderer kernels (v2)", include_dirs=(_CSRC,), cflags=tuple(CFLAGS) + defines,
-        cuda_cflags=tuple(CUDA_CFLAGS) + defines, target=f"sm{_arch_tag()} {os.environ.get('TORCH_CUDA_ARCH_LIST', '')}"))
+        cuda_cflags=tuple(CUDA_CFLAGS) + defines,
+        target=f"sm{cuda._arch_tag()} {os.environ.get('TORCH_CUDA_ARCH_LIST', '')}"))
 
 
 _JIT = JitExtension("cuda", _build, _why_not_buildable, quiet_precheck=True, what="renderer kernels (v2)",
@@ -79,38 +78,17 @@ def extension(t_min: float = K.T_MIN):
 
 
 class _RasterizeCUDAv2(torch.autograd.Function):
-    """``cuda._RasterizeCUDA`` with the v2 extension and the cull marks ``radii``."""
+    """``cuda._RasterizeCUDA`` with the v2 extension and the cull marks ``radii``; the backward's
+    gradient comes packed ([N, S], ``split_packed``)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values,
-                radii, settings: CompositeSettings, ext):
-        st = settings
-        empty = means2d.new_empty(0)
-        opt = lambda t: empty if t is None else t  # noqa: E731
-        rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, pk, ranges, tile_list = ext.forward(
-            means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
-            opt(reg_values), opt(radii), st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
-            st.reg_depth_scale, st.patch)
-        ctx.save_for_backward(alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, opt(background))
-        ctx.settings = st
-        ctx.ext = ext
-        ctx.n_splats = means2d.shape[0]
-        ctx.n_channels = colors.shape[1]
-        ctx.n_reg = 0 if reg_values is None else reg_values.shape[1]
-        ctx.mark_non_differentiable(cnt, pairs, t_final, last)
-        # `last` (1 + the tile-list position of the last composited splat) is the stats' list_end
-        return rgb, alpha_out, depth, reg, cnt, pairs, t_final, last
+    def forward(ctx, *args):   # the ten tensors of kernel_args.INPUTS, radii, the settings, the extension
+        *inputs, radii, st, ext = args
+        return cuda.composite_forward(ctx, ext, tuple(inputs), st, radii)
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth, g_reg, _g_cnt, _g_pairs, _g_t, _g_last):
-        alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg = ctx.saved_tensors
-        st = ctx.settings
-        g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
-        g_reg = g_reg.contiguous().float() if ctx.n_reg else g_rgb.new_empty(0)
-        (grad,) = ctx.ext.backward(
-            g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, cnt, pk, ranges, tile_list, bg,
-            ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax, st.k_max,
-            st.solved, st.reg_depth_scale, HEAD_BUDGET_BYTES, st.patch)
+        (grad,), g_rgb, t_final = cuda.composite_backward(ctx, g_rgb, g_alpha, g_depth, g_reg, HEAD_BUDGET_BYTES)
         grads = split_packed(grad, ctx.ext.layout(), ctx.n_channels, ctx.n_reg)
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=3)   # radii, settings, ext
 
@@ -124,52 +102,27 @@ def split_packed(grad: torch.Tensor, layout: list[int], nch: int, nreg: int) -> 
             grad[:, be], grad[:, ga], grad[:, col + nch:col + nch + nreg]]
 
 
-def composite(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
-              background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN,
-              radii: torch.Tensor | None = None, k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE) -> RenderOutput:
-    """The v2 compositing with the extension passed in (the CPU plumbing test passes a stand-in)."""
-    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
-    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
-    r = None if radii is None else radii.detach().contiguous()
+def composite(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
+    """The v2 compositing with the extension passed in (the CPU plumbing test passes a stand-in);
+    ``splats.radii`` [N,2] (optional): rows with radii (0, 0) are not splats (the fused
+    projection's culled Gaussians)."""
+    args = kernel_inputs(splats, st)
+    r = None if splats.radii is None else splats.radii.detach().contiguous()
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDAv2.apply(*args, r, st, ext)
-    return kernel_output(st, rgb, alpha_out, depth, reg if reg_values is not None else None, cnt, pairs,
+    return kernel_output(st, rgb, alpha_out, depth, reg if splats.reg_values is not None else None, cnt, pairs,
                          list_end=last)
 
 
-def rasterize_splats_cuda_v2(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    depths: torch.Tensor,
-    alpha: torch.Tensor | None,
-    beta: torch.Tensor | None,
-    gamma: torch.Tensor | None,
-    width: int,
-    height: int,
-    mode: str = "softmax_gs",
-    k_max: int = K.DEFAULT_K_MAX,
-    background: torch.Tensor | None = None,
-    eq15: Eq15 = "solved",
-    reg_values: torch.Tensor | None = None,
-    reg_depth_scale: float = 1.0,
-    t_min: float = K.T_MIN,
-    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-    radii: torch.Tensor | None = None,
-) -> RenderOutput:
-    """``smgs.raster.cuda.rasterize_splats_cuda`` through the v2 kernels; ``radii [N,2]`` (optional):
-    rows with radii (0, 0) are not splats (the fused projection's culled Gaussians)."""
-    return composite(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                     mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, radii, k_max_scope)
+def rasterize_splats_cuda_v2(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
+    """``smgs.raster.cuda.rasterize_splats_cuda`` through the v2 kernels (``composite``)."""
+    return composite(extension(st.t_min), splats, st)
 
 
 def rasterize_fused(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                     colors_or_sh: torch.Tensor, camera: Camera, alpha: torch.Tensor | None,
-                    beta: torch.Tensor | None, gamma: torch.Tensor | None, mode: str, k_max: int,
-                    sh_degree: int | None, background: torch.Tensor | None, eq15: Eq15,
-                    reg_values: torch.Tensor | None, reg_depth_scale: float, near_plane: float, eps2d: float,
-                    clamp_sh_colors: bool, t_min: float, k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-                    exts: tuple | None = None) -> RenderOutput:
+                    beta: torch.Tensor | None, gamma: torch.Tensor | None, background: torch.Tensor | None,
+                    reg_values: torch.Tensor | None, st: CompositeSettings, sh_degree: int | None, near_plane: float,
+                    eps2d: float, clamp_sh_colors: bool, exts: tuple | None = None) -> RenderOutput:
     """``smgs.raster.rasterize`` on CUDA tensors through the opt-in kernels, the inputs already checked
     there: the fused projection (and SH) of every Gaussian, then the v2 compositing, which skips the
     culled rows. No gathers: the extras' ``ids`` are all Gaussians (``arange``), ``radii`` (0, 0)
@@ -177,15 +130,14 @@ def rasterize_fused(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     compositing) stand-ins for the CPU plumbing test."""
     from smgs.raster import projection_cuda
 
-    pext, cext = exts if exts is not None else (projection_cuda.extension(), extension(t_min))
+    pext, cext = exts if exts is not None else (projection_cuda.extension(), extension(st.t_min))
     sh = colors_or_sh if sh_degree is not None else None
     proj = projection_cuda.project_fused(means3d, quats, scales, camera, sh=sh, sh_degree=sh_degree,
                                          clamp_sh_colors=clamp_sh_colors, near_plane=near_plane, eps2d=eps2d,
                                          ext=pext)
     colors = proj.colors if sh is not None else colors_or_sh
-    out = composite(cext, proj.means2d, proj.conics, opacities, colors, proj.depths, alpha, beta, gamma, camera.width,
-                    camera.height, mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, proj.radii,
-                    k_max_scope)
+    out = composite(cext, Splats2D(proj.means2d, proj.conics, opacities, colors, proj.depths, alpha, beta, gamma,
+                                   background, reg_values, radii=proj.radii), st)
     ids = torch.arange(means3d.shape[0], device=means3d.device)
     out.extras.update(ids=ids, means2d=proj.means2d, radii=proj.radii)
     return out
@@ -227,40 +179,29 @@ class _RasterizePixelCUDA(torch.autograd.Function):
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:9] + (None,) * 6
 
 
-def composite_pixel(ext, means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
-                    background, eq15, reg_values, reg_depth_scale, t_min: float = K.T_MIN,
-                    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE, ray_depth: RayDepth | None = None,
-                    window: int = K.SORT_WINDOW, lead_alpha: float | None = None) -> RenderOutput:
+def composite_pixel(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     """The per-pixel kernels with the extension passed in: sort="per_pixel" through the re-sorting
-    window (``ray_depth``), or (``ray_depth`` None) the global order for the leading-splat map (zero
-    peak-depth coefficients make every key the centre depth, which a window of 1 keeps in order), as
-    ``cpu._per_pixel``."""
-    st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope)
-    args = kernel_inputs(st, means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values)
+    window of ``st.window`` splats (``splats.ray_depth``), or (``ray_depth`` None) the global order
+    for the leading-splat map (zero peak-depth coefficients make every key the centre depth, which a
+    window of 1 keeps in order), as ``cpu._per_pixel``."""
+    args = kernel_inputs(splats, st)
+    ray_depth = splats.ray_depth
     what = "sort='per_pixel'" if ray_depth is not None else "leaders=True"
     if args[9] is not None:
         raise ValueError(f"{what} on the cuda backend has no variance-regulariser sums (reg_values); "
                          "render without reg_values or with backend='reference'")
     if ray_depth is None:
-        coefs, intr, window = means2d.new_zeros(means2d.shape[0], 9), [1.0, 1.0, 0.0, 0.0], 1
+        coefs, intr, window = splats.means2d.new_zeros(splats.n, 9), [1.0, 1.0, 0.0, 0.0], 1
     else:
         coefs = ray_depth.coefs.detach().to(torch.float32).contiguous()
         intr = [float(ray_depth.fx), float(ray_depth.fy), float(ray_depth.cx), float(ray_depth.cy)]
+        window = st.window
     rgb, alpha_out, depth, cnt, pairs, _, leaders, list_end = _RasterizePixelCUDA.apply(
-        *args[:9], coefs, st, intr, int(window), -1.0 if lead_alpha is None else float(lead_alpha), ext)
-    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if lead_alpha is not None else None,
-                         list_end)
+        *args[:9], coefs, st, intr, int(window), K.LEADER_ALPHA if st.leaders else -1.0, ext)
+    return kernel_output(st, rgb, alpha_out, depth, None, cnt, pairs, leaders if st.leaders else None, list_end)
 
 
-def rasterize_splats_pixel_cuda(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height,
-                                mode: str = "softmax_gs", k_max: int = K.DEFAULT_K_MAX,
-                                background: torch.Tensor | None = None, eq15: Eq15 = "solved",
-                                reg_values: torch.Tensor | None = None, reg_depth_scale: float = 1.0,
-                                t_min: float = K.T_MIN, k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-                                ray_depth: RayDepth | None = None, leaders: bool = False,
-                                window: int = K.SORT_WINDOW) -> RenderOutput:
+def rasterize_splats_pixel_cuda(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     """``rasterize_splats`` with ``ray_depth`` and/or ``leaders`` on CUDA tensors, through the
     per-pixel kernels (csrc/cuda_pixel.cu, the CPU window's twin; windows up to 32 splats)."""
-    return composite_pixel(extension(t_min), means2d, conics, opacities, colors, depths, alpha, beta, gamma, width,
-                           height, mode, k_max, background, eq15, reg_values, reg_depth_scale, t_min, k_max_scope,
-                           ray_depth, window, K.LEADER_ALPHA if leaders else None)
+    return composite_pixel(extension(st.t_min), splats, st)

@@ -1,51 +1,28 @@
-"""What the compiled backends (cpu, cuda) share around their kernels: the settings kept on the
-autograd context, the inputs in the kernels' form, the gradients handed back and the output built.
+"""What the compiled backends (cpu, cuda) share around their kernels: the inputs in the kernels'
+form, the gradients handed back and the output built.
 The inputs were checked by ``smgs.raster.api.rasterize_splats`` before they arrive here."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
-from smgs.raster.types import RenderOutput, RenderStats, mode_flags, scope_is_patch
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
+from smgs.raster.types import RenderOutput, RenderStats
 
 # Position of each tensor input of the compiled autograd Functions (ctx.needs_input_grad order).
 INPUTS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma", "background",
           "reg_values")
 
 
-@dataclass(frozen=True)
-class CompositeSettings:
-    """The non-tensor settings of one compositing call, kept whole on the autograd context."""
-
-    width: int
-    height: int
-    use_gef: bool
-    use_softmax: bool
-    k_max: int
-    solved: bool
-    reg_depth_scale: float
-    t_min: float
-    patch: bool = False   # k_max scope "patch" (docs/kmax-scope.md)
-
-
-def composite_settings(width: int, height: int, mode: str, k_max: int, eq15: str, reg_depth_scale: float,
-                       t_min: float, k_max_scope: str = "pixel") -> CompositeSettings:
-    use_gef, use_softmax = mode_flags(mode)
-    return CompositeSettings(int(width), int(height), use_gef, use_softmax, int(k_max), eq15 == "solved",
-                             float(reg_depth_scale), float(t_min), scope_is_patch(k_max_scope))
-
-
-def kernel_inputs(st: CompositeSettings, means2d, conics, opacities, colors, depths, alpha, beta, gamma,
-                  background, reg_values) -> tuple[torch.Tensor | None, ...]:
-    """The ten tensor inputs as the kernels read them: contiguous float32, None where the mode
-    ignores them, the background flat."""
+def kernel_inputs(sp: Splats2D, st: CompositeSettings) -> tuple[torch.Tensor | None, ...]:
+    """The ten tensor inputs (``INPUTS``) as the kernels read them: contiguous float32, None where the
+    mode ignores them, the background flat."""
     f32 = lambda t: None if t is None else t.to(torch.float32).contiguous()  # noqa: E731
-    bg = None if background is None else background.to(device=means2d.device, dtype=torch.float32).reshape(-1)
-    return (means2d.contiguous(), conics.contiguous(), opacities.contiguous(), colors.contiguous(),
-            depths.contiguous(), f32(alpha) if st.use_gef else None, f32(beta) if st.use_softmax else None,
-            f32(gamma) if st.use_softmax else None, None if bg is None else bg.contiguous(), f32(reg_values))
+    bg = None if sp.background is None else sp.background.to(device=sp.means2d.device,
+                                                              dtype=torch.float32).reshape(-1)
+    return (sp.means2d.contiguous(), sp.conics.contiguous(), sp.opacities.contiguous(), sp.colors.contiguous(),
+            sp.depths.contiguous(), f32(sp.alpha) if st.use_gef else None, f32(sp.beta) if st.use_softmax else None,
+            f32(sp.gamma) if st.use_softmax else None, None if bg is None else bg.contiguous(), f32(sp.reg_values))
 
 
 def output_grads(ctx, g_rgb, g_alpha, g_depth, g_reg, alpha_out: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -86,9 +63,7 @@ def kernel_output(st: CompositeSettings, rgb: torch.Tensor, alpha: torch.Tensor,
                         leaders=None if leaders is None else leaders.long())
 
 
-def no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width, height, mode, k_max,
-              background, eq15, reg_values, reg_depth_scale, t_min, leaders: bool = False,
-              k_max_scope: str | None = None) -> RenderOutput:
+def no_splats(sp: Splats2D, st: CompositeSettings) -> RenderOutput:
     """A render of zero splats (none in view): the background, zero alpha and depth, and zero
     gradients for every input. The compiled kernels read the regulariser's channel count from a
     non-empty ``reg_values`` only, so with none they returned ``reg`` [H, W, 0] and the ray
@@ -96,7 +71,4 @@ def no_splats(means2d, conics, opacities, colors, depths, alpha, beta, gamma, wi
     documented shapes ([H, W, 1 + 2R]) with its outputs still in the autograd graph."""
     from smgs.raster.reference import rasterize_splats_reference
 
-    return rasterize_splats_reference(means2d, conics, opacities, colors, depths, alpha, beta, gamma, width,
-                                      height, mode=mode, k_max=k_max, background=background, eq15=eq15,
-                                      reg_values=reg_values, reg_depth_scale=reg_depth_scale, t_min=t_min,
-                                      leaders=leaders, **({} if k_max_scope is None else {"k_max_scope": k_max_scope}))
+    return rasterize_splats_reference(sp, st)

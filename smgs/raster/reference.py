@@ -43,7 +43,8 @@ import torch
 
 from smgs.raster import constants as K
 from smgs.raster.tiles import list_positions
-from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats, mode_flags, scope_is_patch
+from smgs.raster.composite_inputs import CompositeSettings, Splats2D
+from smgs.raster.types import RenderOutput, RenderStats
 
 
 def _sorted_order(depths: torch.Tensor) -> torch.Tensor:
@@ -235,34 +236,15 @@ def _take_leader(lead: torch.Tensor, hit: torch.Tensor, k) -> torch.Tensor:
     return torch.stack([torch.where(first, k, lead[:, 0]), torch.where(second, k, lead[:, 1])], 1)
 
 
-def rasterize_splats_reference(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    depths: torch.Tensor,
-    alpha: torch.Tensor | None,
-    beta: torch.Tensor | None,
-    gamma: torch.Tensor | None,
-    width: int,
-    height: int,
-    mode: str = "softmax_gs",
-    k_max: int = K.DEFAULT_K_MAX,
-    background: torch.Tensor | None = None,
-    eq15: Eq15 = "solved",
-    reg_values: torch.Tensor | None = None,
-    reg_depth_scale: float = 1.0,
-    t_min: float = K.T_MIN,
-    ray_depth: RayDepth | None = None,
-    leaders: bool = False,
-    k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-) -> RenderOutput:
-    """Composite projected splats; see ``smgs.raster.rasterize_splats`` for the arguments. With
-    ``ray_depth`` each pixel takes its splats in its own exact order (``smgs.raster.ray_depth``),
-    else all in the order of ``depths``. ``leaders``: also the leading-splat map (the first two
-    composited splats with a >= constants.LEADER_ALPHA per pixel)."""
-    use_gef, use_softmax = mode_flags(mode)
-    patch = scope_is_patch(k_max_scope)
+def rasterize_splats_reference(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
+    """Composite projected splats (``smgs.raster.rasterize_splats`` has the arguments). With
+    ``splats.ray_depth`` each pixel takes its splats in its own exact order
+    (``smgs.raster.ray_depth``), else all in the order of ``depths``. ``st.leaders``: also the
+    leading-splat map (the first two composited splats with a >= constants.LEADER_ALPHA per pixel)."""
+    means2d, conics, opacities, colors, depths, alpha, beta, gamma = splats.per_splat()
+    background, reg_values, ray_depth = splats.background, splats.reg_values, splats.ray_depth
+    use_gef, use_softmax, k_max, patch = st.use_gef, st.use_softmax, st.k_max, st.patch
+    width, height = st.width, st.height
     device, dtype = means2d.device, means2d.dtype
     n_ch = colors.shape[1]
     P = width * height
@@ -286,7 +268,7 @@ def rasterize_splats_reference(
     if patch:   # [tiles, N] list positions, and each pixel's tile
         positions, pixel_tile = list_positions(means2d, conics, opacities, depths, width, height)
     track = use_softmax and k_max > 0
-    lead = torch.full((P, 2), -1, device=device, dtype=torch.long) if leaders else None
+    lead = torch.full((P, 2), -1, device=device, dtype=torch.long) if st.leaders else None
     one = torch.ones((), device=device, dtype=dtype)
     half = 0.5 * one
 
@@ -307,7 +289,7 @@ def rasterize_splats_reference(
         reach = (~done) & (q <= -K.P_MIN) & (a >= K.ALPHA_MIN)
         if not bool(reach.any()):
             continue
-        stop = reach & (T * (1 - a) < t_min * (1 - K.T_STOP_SLACK))
+        stop = reach & (T * (1 - a) < st.t_min * (1 - K.T_STOP_SLACK))
         head_k = (pos < k_max) if patch else (count < k_max)   # the step's place in the softmax head
         if use_softmax:   # the stop holds for vanilla steps only: in the head a later splat can win
             stop = stop & ~head_k
@@ -329,7 +311,7 @@ def rasterize_splats_reference(
             A_s = torch.where(soft, A, half)
             a_s = torch.where(soft, a, half)
             T_s = torch.where(soft, T, half)
-            ss = softmax_step(T_s, A_s, C, d_past, p_past, a_s, p, sp.d, sp.col, sp.be, sp.ga, eq15)
+            ss = softmax_step(T_s, A_s, C, d_past, p_past, a_s, p, sp.d, sp.col, sp.be, sp.ga, st.eq15)
             new_state = [torch.where(soft[:, None] if v.dim() == 2 else soft, v, o)
                          for v, o in zip(ss, new_state)]
         T, A, C, d_past, p_past = new_state
@@ -339,7 +321,7 @@ def rasterize_splats_reference(
         if reg is not None:
             first = in_head & (n_head == 0)
             d_front = torch.where(first, sp.d.detach().expand(P), d_front)
-            w = 1.0 / (1.0 + (sp.d.detach() - d_front) / reg_depth_scale)
+            w = 1.0 / (1.0 + (sp.d.detach() - d_front) / st.reg_depth_scale)
             w = torch.where(in_head, w, torch.zeros_like(w))
             reg = reg + torch.cat([w[:, None], w[:, None] * sp.rv, w[:, None] * sp.rv * sp.rv], dim=1)
         count = count + reach.long()
@@ -348,7 +330,7 @@ def rasterize_splats_reference(
             list_end = torch.where(reach, torch.maximum(list_end, pos + 1), list_end)
 
     stats = RenderStats(n_contrib=count.reshape(height, width), pairs_evaluated=P * means2d.shape[0],
-                        k_max=k_max if use_softmax else 2**31 - 1, scope=k_max_scope,
+                        k_max=k_max if use_softmax else 2**31 - 1, scope=st.scope,
                         list_end=None if list_end is None else list_end.reshape(height, width))
     used = (means2d, conics, opacities, colors, depths) + ((alpha,) if use_gef else ()) \
         + ((beta, gamma) if use_softmax else ()) + (reg_values,)
