@@ -30,7 +30,7 @@ def test_binding_signatures_and_pybind_names_agree():
         assert [n for _, n in params] == py_args(name), fn
         assert all(t in PYTYPE for t, _ in params), params
     assert len(returned("forward_torch")) == 11
-    ret = re.search(r"return \{(rgb, [^}]*)\};", BINDING).group(1)
+    ret = re.search(r"return \{(out\.rgb, [^}]*)\};", BINDING).group(1)
     assert len(ret.split(",")) == len(returned("forward_torch"))
 
 

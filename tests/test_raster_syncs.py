@@ -21,7 +21,7 @@ import re
 
 import pytest
 import torch
-from cuda_standin import BINDING
+from cuda_standin import BINDING, CSRC
 from device_mix import OTHER, simulated_gpu
 
 from smgs import Camera
@@ -30,16 +30,20 @@ from smgs.raster.device_glue import GLUE_ENV
 from smgs.raster.types import MODES, mode_flags
 
 
-def _body(fn: str) -> str:
-    start = BINDING.index(f"std::vector<at::Tensor> {fn}(")
-    end = BINDING.index("\n}\n", start)
-    return BINDING[start:end]
+def _body(fn: str, src: str = BINDING) -> str:
+    start = src.index(fn)
+    end = src.index("\n}\n", start)
+    return src[start:end]
 
 
 def test_the_binding_waits_for_the_pair_count_and_in_softmax_backwards_only():
-    """The stand-in's waits (HostStandIn) are the binding's: one read in the forward, one in the
-    backward under ``use_softmax``, nothing else that reads a device value."""
-    fwd, bwd = _body("forward_torch"), _body("backward_torch")
+    """The stand-in's waits (HostStandIn) are the binding's: one read in the forward (its binning,
+    csrc/cuda_binding_common.h's bin), one in the backward under ``use_softmax``, nothing else that
+    reads a device value."""
+    common = (CSRC / "cuda_binding_common.h").read_text()
+    forward = _body("std::vector<at::Tensor> forward_torch(")
+    assert "bin(" in forward
+    fwd, bwd = forward + _body("Binned bin(", common), _body("std::vector<at::Tensor> backward_torch(")
     assert len(re.findall(r"\.item<", fwd)) == 1 and "offs[N - 1].item<" in fwd
     reads = [line for line in bwd.splitlines() if ".item<" in line]
     assert len(reads) == 1 and "use_softmax &&" in reads[0], reads

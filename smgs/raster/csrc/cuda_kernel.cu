@@ -32,6 +32,7 @@
 #include <algorithm>
 #include <cstdint>
 
+#include "cuda_common.cuh"
 #include "cuda_kernel.h"
 #include "splat_math.h"
 
@@ -40,11 +41,6 @@ namespace cuda {
 
 namespace {
 
-constexpr int kBlock = kTileSize * kTileSize;  // threads per block, one per pixel of a tile
-constexpr unsigned kFull = 0xffffffffu;
-
-inline cudaStream_t as_stream(void* s) { return static_cast<cudaStream_t>(s); }
-inline int last_error() { return int(cudaGetLastError()); }
 inline int blocks_for(int64_t n, int threads) { return int((n + threads - 1) / threads); }
 
 // ---- binning --------------------------------------------------------------------------------------
@@ -144,34 +140,6 @@ __global__ void ranges_kernel(const uint64_t* keys, int count, int32_t* ranges) 
 
 // ---- compositing helpers ----------------------------------------------------------------------------
 
-// Per-pixel channel state (colours, then the depth channel): registers when the channel count is a
-// compile-time constant, else a pixel-private column of a [channels, pixels] buffer in global memory.
-template <int NCT>
-struct Chan {
-  float v[NCT + 1];
-  __device__ Chan(float*, int64_t) {}
-  __device__ float& operator[](int c) { return v[c]; }
-};
-template <>
-struct Chan<0> {
-  float* p;
-  int64_t stride;
-  __device__ Chan(float* base, int64_t s) : p(base), stride(s) {}
-  __device__ float& operator[](int c) { return p[c * stride]; }
-};
-
-__device__ __forceinline__ float warp_sum(float v) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(kFull, v, o);
-  return v;
-}
-
-// Adds a per-lane value, summed over the warp, to *dst (one atomic per warp; lanes that do not
-// contribute pass 0). Call with the whole warp.
-__device__ __forceinline__ void warp_add(float* dst, float v) {
-  v = warp_sum(v);
-  if ((threadIdx.x & 31) == 0) atomicAdd(dst, v);
-}
-
 // Rows [b0, b0 + nb) of a tile's list into shared memory (row-major, S floats each).
 __device__ __forceinline__ void load_rows(float* rows, const Scene& sc, int start, int b0, int nb) {
   const int S = sc.S;
@@ -180,25 +148,6 @@ __device__ __forceinline__ void load_rows(float* rows, const Scene& sc, int star
     rows[e] = sc.pk[int64_t(sc.vals[start + b0 + r]) * S + (e - r * S)];
   }
 }
-
-struct Pixel {
-  int x, y;
-  bool inside;
-  int64_t pix, npix;
-  float px, py;
-  int start, n;  // the tile's range in the sorted list
-  __device__ Pixel(const Scene& sc, int tile) {
-    x = (tile % sc.tiles_x) * kTileSize + int(threadIdx.x) % kTileSize;
-    y = (tile / sc.tiles_x) * kTileSize + int(threadIdx.x) / kTileSize;
-    inside = x < sc.W && y < sc.H;
-    npix = int64_t(sc.W) * sc.H;
-    pix = inside ? int64_t(y) * sc.W + x : 0;
-    px = float(x) + kPixelCenter;
-    py = float(y) + kPixelCenter;
-    start = sc.ranges[2 * tile];
-    n = sc.ranges[2 * tile + 1] - start;
-  }
-};
 
 // ---- forward -------------------------------------------------------------------------------------------
 template <bool GEF, bool SOFT, int NCT>

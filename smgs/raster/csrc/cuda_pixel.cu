@@ -24,6 +24,7 @@
 #include <algorithm>
 #include <cstdint>
 
+#include "cuda_common.cuh"
 #include "cuda_pixel.h"
 #include "splat_math.h"
 
@@ -32,11 +33,6 @@ namespace cuda {
 namespace pixel {
 
 namespace {
-
-constexpr int kBlock = kTileSize * kTileSize;
-
-inline cudaStream_t as_stream(void* s) { return static_cast<cudaStream_t>(s); }
-inline int last_error() { return int(cudaGetLastError()); }
 
 // Fields of a batch row (field f of row j at rows[f·B + j]): what the walk tests.
 enum { G_MX = 0, G_MY, G_HA, G_R, G_HS, G_O, G_D, G_CORE };
@@ -72,39 +68,6 @@ __device__ __forceinline__ void load_batch(float* rows, int* ints, int B, const 
     ints[4 * B + j] = id;
   }
 }
-
-template <int NCT>
-struct Chan {
-  float v[NCT + 1];
-  __device__ Chan(float*, int64_t) {}
-  __device__ float& operator[](int c) { return v[c]; }
-};
-template <>
-struct Chan<0> {
-  float* p;
-  int64_t stride;
-  __device__ Chan(float* base, int64_t s) : p(base), stride(s) {}
-  __device__ float& operator[](int c) { return p[c * stride]; }
-};
-
-struct Pixel {
-  int x, y;
-  bool inside;
-  int64_t pix, npix;
-  float px, py;
-  int start, n;
-  __device__ Pixel(const Scene& sc, int tile) {
-    x = (tile % sc.tiles_x) * kTileSize + int(threadIdx.x) % kTileSize;
-    y = (tile / sc.tiles_x) * kTileSize + int(threadIdx.x) / kTileSize;
-    inside = x < sc.W && y < sc.H;
-    npix = int64_t(sc.W) * sc.H;
-    pix = inside ? int64_t(y) * sc.W + x : 0;
-    px = float(x) + kPixelCenter;
-    py = float(y) + kPixelCenter;
-    start = sc.ranges[2 * tile];
-    n = sc.ranges[2 * tile + 1] - start;
-  }
-};
 
 // The window, in arrival order.
 struct Window {
@@ -259,7 +222,7 @@ __global__ void __launch_bounds__(kBlock) fwd_kernel(Scene sc, PixelIn pin, FwdO
       po.lead[2 * P.pix + 1] = lead1;
     }
   }
-  for (int off = 16; off > 0; off >>= 1) pairs += __shfl_xor_sync(0xffffffffu, pairs, off);
+  for (int off = 16; off > 0; off >>= 1) pairs += __shfl_xor_sync(kFull, pairs, off);
   if ((threadIdx.x & 31) == 0 && pairs) atomicAdd(o.pairs, pairs);
 }
 
@@ -413,40 +376,26 @@ struct Launch {
   }
 };
 
-template <class F>
-int dispatch(const Scene& sc, F&& f) {
-  if (sc.nch == 3) {
-    if (sc.gef) return sc.soft ? f(Launch<true, true, 3>{}) : f(Launch<true, false, 3>{});
-    return sc.soft ? f(Launch<false, true, 3>{}) : f(Launch<false, false, 3>{});
-  }
-  if (sc.gef) return sc.soft ? f(Launch<true, true, 0>{}) : f(Launch<true, false, 0>{});
-  return sc.soft ? f(Launch<false, true, 0>{}) : f(Launch<false, false, 0>{});
-}
-
 }  // namespace
 
 size_t step_record_floats(int nch, bool soft) { return size_t(record_floats(nch, soft)); }
 
 int backward_grid(const Scene& sc, int max_cnt, int64_t budget_bytes) {
-  int dev = 0, sms = 1, occ = 1;
-  cudaGetDevice(&dev);
-  cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
-  if (dispatch(sc, [&](auto L) { return L.per_sm(&occ); }) != 0 || occ < 1) occ = 1;
-  int64_t grid = std::min<int64_t>(int64_t(occ) * sms, int64_t(sc.tiles_x) * sc.tiles_y);
+  int occ = 1;
+  if (dispatch_mode<Launch>(sc, [&](auto L) { return L.per_sm(&occ); }) != 0 || occ < 1) occ = 1;
   const int64_t per_block =
       int64_t(kBlock) * max_cnt * int64_t(step_record_floats(sc.nch, sc.soft)) * int64_t(sizeof(float));
-  if (per_block > 0) grid = std::min<int64_t>(grid, std::max<int64_t>(1, budget_bytes / per_block));
-  return int(std::max<int64_t>(1, grid));
+  return persistent_grid(occ, int64_t(sc.tiles_x) * sc.tiles_y, per_block, budget_bytes);
 }
 
 int forward(const Scene& sc, const PixelIn& pin, const FwdOut& out, const PixelOut& pout, void* stream) {
   if (pin.window < 1 || pin.window > kMaxWindow) return int(cudaErrorInvalidValue);
-  return dispatch(sc, [&](auto L) { return L.fwd(sc, pin, out, pout, as_stream(stream)); });
+  return dispatch_mode<Launch>(sc, [&](auto L) { return L.fwd(sc, pin, out, pout, as_stream(stream)); });
 }
 
 int backward(const Scene& sc, const PixelIn& pin, const BwdIn& in, const PixelBwdWork& work, void* stream) {
   if (pin.window < 1 || pin.window > kMaxWindow) return int(cudaErrorInvalidValue);
-  return dispatch(sc, [&](auto L) { return L.bwd(sc, pin, in, work, as_stream(stream)); });
+  return dispatch_mode<Launch>(sc, [&](auto L) { return L.bwd(sc, pin, in, work, as_stream(stream)); });
 }
 
 }  // namespace pixel

@@ -26,6 +26,7 @@
 #include <algorithm>
 #include <cstdint>
 
+#include "cuda_common.cuh"
 #include "cuda_v2_kernel.h"
 #include "splat_math.h"
 
@@ -34,12 +35,6 @@ namespace cuda {
 namespace v2 {
 
 namespace {
-
-constexpr int kBlock = kTileSize * kTileSize;  // threads per block, one per pixel of a tile
-constexpr unsigned kFull = 0xffffffffu;
-
-inline cudaStream_t as_stream(void* s) { return static_cast<cudaStream_t>(s); }
-inline int last_error() { return int(cudaGetLastError()); }
 
 // ---- the lean shared-memory batch ----------------------------------------------------------------
 // Fields of a batch row, in this order: the seven every mode reads, α (GEF), β and γ (softmax),
@@ -82,52 +77,6 @@ struct Row {
   const float* p;  // rows + j
   int B;
   __device__ __forceinline__ float operator[](int f) const { return p[f * B]; }
-};
-
-// Per-pixel channel state (colours, then the depth channel): registers when the channel count is a
-// compile-time constant, else a pixel-private column of a [channels, pixels] buffer in global memory.
-template <int NCT>
-struct Chan {
-  float v[NCT + 1];
-  __device__ Chan(float*, int64_t) {}
-  __device__ float& operator[](int c) { return v[c]; }
-};
-template <>
-struct Chan<0> {
-  float* p;
-  int64_t stride;
-  __device__ Chan(float* base, int64_t s) : p(base), stride(s) {}
-  __device__ float& operator[](int c) { return p[c * stride]; }
-};
-
-__device__ __forceinline__ float warp_sum(float v) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(kFull, v, o);
-  return v;
-}
-
-// Adds a per-lane value, summed over the warp, to *dst (one atomic per warp). Call with the whole warp.
-__device__ __forceinline__ void warp_add(float* dst, float v) {
-  v = warp_sum(v);
-  if ((threadIdx.x & 31) == 0) atomicAdd(dst, v);
-}
-
-struct Pixel {
-  int x, y;
-  bool inside;
-  int64_t pix, npix;
-  float px, py;
-  int start, n;  // the tile's range in the sorted list
-  __device__ Pixel(const Scene& sc, int tile) {
-    x = (tile % sc.tiles_x) * kTileSize + int(threadIdx.x) % kTileSize;
-    y = (tile / sc.tiles_x) * kTileSize + int(threadIdx.x) / kTileSize;
-    inside = x < sc.W && y < sc.H;
-    npix = int64_t(sc.W) * sc.H;
-    pix = inside ? int64_t(y) * sc.W + x : 0;
-    px = float(x) + kPixelCenter;
-    py = float(y) + kPixelCenter;
-    start = sc.ranges[2 * tile];
-    n = sc.ranges[2 * tile + 1] - start;
-  }
 };
 
 // rows per batch: up to one per thread, within kSharedBytes of dynamic shared memory (rows + ids)
@@ -536,16 +485,6 @@ struct Launch {
   }
 };
 
-template <class F>
-int dispatch(const Scene& sc, F&& f) {
-  if (sc.nch == 3) {
-    if (sc.gef) return sc.soft ? f(Launch<true, true, 3>{}) : f(Launch<true, false, 3>{});
-    return sc.soft ? f(Launch<false, true, 3>{}) : f(Launch<false, false, 3>{});
-  }
-  if (sc.gef) return sc.soft ? f(Launch<true, true, 0>{}) : f(Launch<true, false, 0>{});
-  return sc.soft ? f(Launch<false, true, 0>{}) : f(Launch<false, false, 0>{});
-}
-
 }  // namespace
 
 // ---- host interface (cuda_v2_kernel.h) -----------------------------------------------------------------------
@@ -558,24 +497,19 @@ int cull_by_radii(const float* radii, int64_t* ntiles, int n, void* stream) {
 size_t head_record_floats(int nch) { return size_t(record_floats(nch)); }
 
 int backward_grid(const Scene& sc, int kmax_eff, int64_t budget_bytes, int* per_sm) {
-  int dev = 0, sms = 1, occ = 1;
-  cudaGetDevice(&dev);
-  cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
-  if (dispatch(sc, [&](auto L) { return L.per_sm(sc, &occ); }) != 0 || occ < 1) occ = 1;
+  int occ = 1;
+  if (dispatch_mode<Launch>(sc, [&](auto L) { return L.per_sm(sc, &occ); }) != 0 || occ < 1) occ = 1;
   if (per_sm) *per_sm = occ;
-  int64_t grid = int64_t(occ) * sms;
-  grid = std::min<int64_t>(grid, int64_t(sc.tiles_x) * sc.tiles_y);
   const int64_t per_block = int64_t(kBlock) * kmax_eff * int64_t(head_record_floats(sc.nch)) * int64_t(sizeof(float));
-  if (per_block > 0) grid = std::min<int64_t>(grid, std::max<int64_t>(1, budget_bytes / per_block));
-  return int(std::max<int64_t>(1, grid));
+  return persistent_grid(occ, int64_t(sc.tiles_x) * sc.tiles_y, per_block, budget_bytes);
 }
 
 int forward(const Scene& sc, const FwdOut& out, void* stream) {
-  return dispatch(sc, [&](auto L) { return L.fwd(sc, out, as_stream(stream)); });
+  return dispatch_mode<Launch>(sc, [&](auto L) { return L.fwd(sc, out, as_stream(stream)); });
 }
 
 int backward(const Scene& sc, const BwdIn& in, const BwdWork& work, void* stream) {
-  return dispatch(sc, [&](auto L) { return L.bwd(sc, in, work, as_stream(stream)); });
+  return dispatch_mode<Launch>(sc, [&](auto L) { return L.bwd(sc, in, work, as_stream(stream)); });
 }
 
 }  // namespace v2
