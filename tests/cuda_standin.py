@@ -48,7 +48,7 @@ def returned(fn: str) -> list[str]:
 
 
 def pk_layout() -> dict[str, int]:
-    body = re.search(r"enum \{([^}]*)\}", (CSRC / "cuda_kernel.h").read_text()).group(1)
+    body = re.search(r"enum \{([^}]*)\}", (CSRC / "packed_row.h").read_text()).group(1)
     names = [s.split("=")[0].strip() for s in body.split(",")]
     return {n: i for i, n in enumerate(names)}
 

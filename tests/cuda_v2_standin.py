@@ -23,7 +23,7 @@ from smgs.raster.sh import eval_sh
 
 CSRC = Path(cuda_v2.__file__).parent / "csrc"
 PYTYPE = {"at::Tensor": torch.Tensor, "int64_t": int, "bool": bool, "double": float, "std::vector<double>": list}
-LAYOUT = [0, 1, 2, 4, 5, 6, 7, 8, 9, 10]   # cuda_kernel.h's P_* (test_raster_cuda_v2_plumbing checks them)
+LAYOUT = [0, 1, 2, 4, 5, 6, 7, 8, 9, 10]   # packed_row.h's P_* (test_raster_cuda_v2_plumbing checks them)
 KEYS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")
 
 

@@ -81,7 +81,7 @@ def test_fused_plumbing_matches_the_reference(mode, sh_degree, scope):
 
 
 def test_layout_matches_the_kernel_header():
-    body = re.search(r"enum \{([^}]*)\}", (CSRC / "cuda_kernel.h").read_text()).group(1)
+    body = re.search(r"enum \{([^}]*)\}", (CSRC / "packed_row.h").read_text()).group(1)
     P = {s.split("=")[0].strip(): i for i, s in enumerate(body.split(","))}
     assert LAYOUT == [P[k] for k in ("P_MX", "P_MY", "P_CA", "P_CC", "P_O", "P_D", "P_AL", "P_BE", "P_GA", "P_COL")]
     layout = re.search(r'm\.def\("layout", \[\]\(\) \{ return std::vector<int>\{([^}]*)\}', (CSRC / "cuda_v2_binding.cpp")

@@ -30,7 +30,8 @@ from smgs.raster.types import RenderOutput
 _CSRC = Path(__file__).parent / "csrc"
 # cuda_kernel.cu brings the default backend's binning (prepare, prefix sum, keys, sort, ranges)
 SOURCES = ("cuda_v2_binding.cpp", "cuda_kernel.cu", "cuda_v2_kernel.cu", "cuda_pixel.cu")
-HEADERS = ("cuda_common.cuh", "cuda_kernel.h", "cuda_v2_kernel.h", "cuda_pixel.h", "splat_math.h")
+HEADERS = ("cuda_common.cuh", "cuda_kernel.h", "cuda_v2_kernel.h", "cuda_pixel.h", "packed_row.h", "pixel_step_bwd.h",
+           "splat_math.h")
 # FMA contraction on (nvcc's default); the reach arithmetic is written with mul_rn/add_rn, which are
 # never fused (splat_math.h), so the decisions stay the other backends'.
 CUDA_CFLAGS = ["-O3", "--fmad=true"]

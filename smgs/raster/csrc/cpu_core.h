@@ -11,13 +11,10 @@
 #include <cstring>
 #include <vector>
 
+#include "packed_row.h"  // the packed per-splat rows (depth order here)
 #include "splat_math.h"
 
 namespace smgs {
-
-// Packed per-splat row (depth order): parameters, then colours, then regularised values.
-// P_CA..P_CC: in a parameter row the conic's factor (splat_factor), in a gradient row dL/d(a, b, c).
-enum { P_MX = 0, P_MY, P_CA, P_CB, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL };
 
 struct Scene {
   int W = 0, H = 0, nch = 0, R = 0, S = 0, M = 0;

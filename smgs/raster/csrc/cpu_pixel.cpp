@@ -16,6 +16,7 @@
 // order), so the gradients do not depend on the thread count. The order carries no gradient.
 #include "cpu_core.h"
 #include "parallel.h"
+#include "pixel_step_bwd.h"
 
 namespace smgs {
 
@@ -175,7 +176,8 @@ struct Taken {
 };
 
 // G: gradient rows (stride Sp, pk layout) of the tile-list entries; each tile writes only its own.
-// The adjoint of step<SOFT> per composited splat, back to front (as bwd_block in cpu_tiles.h).
+// The adjoint of step<SOFT> per composited splat, back to front (pixel_step_bwd.h, as bwd_block in
+// cpu_tiles.h).
 template <bool GEF, bool SOFT>
 void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrder& order) {
   const int nt = sc.tiles_x * sc.tiles_y;
@@ -220,72 +222,13 @@ void pixel_bwd_tiles(const Scene& sc, const BwdIn& in, float* G, const PixelOrde
         for (size_t k = taken.size(); k-- > 0;) {
           const int pos = taken[k].pos;
           const Pixel& P = taken[k].pre;
-          const float* s = sc.pk + size_t(lst[pos]) * sc.S;
-          const Factor f{s[P_CA], s[P_CB], s[P_CC]};
-          const Quad<float> q = splat_quad(fx, fy, s[P_MX], s[P_MY], f);
-          const Absorb<float> ab = splat_absorb<GEF>(q.q, s[P_O], s[P_AL]);
-          const float a = ab.a, p = -q.q, d = s[P_D];
-          const bool head = SOFT && in_head(sc, P, pos), soft = head && P.A > 0.f;
-          SoftFwd<float> sf;
-          float aT = a * P.T, r = 1.f, wk = 1.f;   // a head step at A = 0 has wk = 1 (step<true>)
-          if (soft) {
-            sf = softmax_fwd(P.T, P.A, P.dp, P.pp, a, p, d, s[P_BE], s[P_GA], sc.solved);
-            aT = sf.aT;
-            r = sf.r;
-            wk = sf.wk;
-          }
           float* g = Gt + size_t(pos) * Sp;
-          // adjoint of C' = C·r + c·aT (depth is channel nch)
-          float g_aT = 0.f, g_r = 0.f;
-          for (int c = 0; c < nch; ++c) {
-            g_aT += gC[c] * s[P_COL + c];
-            g[P_COL + c] += gC[c] * aT;
-          }
-          g_aT += gC[nch] * d;
-          float g_d = gC[nch] * aT, g_p = 0.f, g_wk = 0.f, g_a, gTpre;
-          if (soft) {
-            const float* cp = Cpre.data() + k * nc;
-            for (int c = 0; c < nc; ++c) {
-              g_r += gC[c] * cp[c];
-              gC[c] *= r;
-            }
-          }
-          if (head) {   // adjoint of the running means d' = d + (d_k - d)·wk, p' likewise
-            g_wk = gdp * (d - P.dp) + gpp * (p - P.pp);
-            g_d += gdp * wk;
-            g_p = gpp * wk;
-            gdp -= gdp * wk;
-            gpp -= gpp * wk;
-          }
-          if (soft) {
-            const SoftGrad<float> sg = softmax_bwd(sf, P.T, P.A, P.dp, P.pp, a, p, s[P_BE], s[P_GA], sc.solved, gT,
-                                                   gA, g_r, g_aT, g_wk);
-            gTpre = sg.T;
-            gA = sg.A;
-            g_a = sg.a;
-            g_p += sg.p;
-            g_d += sg.d;
-            gdp += sg.dp;
-            gpp += sg.pp;
-            g[P_BE] += sg.beta;
-            g[P_GA] += sg.gamma;
-          } else if (SOFT) {
-            float gAv;
-            vanilla_coef_bwd(P.T, P.A, a, gT, gA, g_aT, g_wk, gTpre, gAv, g_a);
-            gA = gAv;
-          } else {
-            vanilla_step_bwd(P.T, a, g_aT + gA, gT, gTpre, g_a);   // A' = A + aT: dL/dA passes through
-          }
-          gT = gTpre;
-          g[P_D] += g_d;
-          const KernGrad<float> kg = splat_kernel_bwd<GEF>(q, ab, f, s[P_O], s[P_AL], g_a, g_p);
-          g[P_MX] += kg.mx;
-          g[P_MY] += kg.my;
-          g[P_CA] += kg.ca;
-          g[P_CB] += kg.cb;
-          g[P_CC] += kg.cc;
-          g[P_O] += kg.o;
-          if (GEF) g[P_AL] += kg.alpha;
+          const auto pre = [&](int c0, float* h) {   // the channel state before the step (softmax)
+            for (int m = 0; m < 4; ++m) h[m] = c0 + m < nc ? Cpre[k * nc + c0 + m] : 0.f;
+          };
+          pixel_step_bwd<GEF, SOFT>(sc.pk + size_t(lst[pos]) * sc.S, fx, fy, P.T, P.A, P.dp, P.pp,
+                                    SOFT && in_head(sc, P, pos), sc.solved, nch, gC, pre,
+                                    [&](int col, float v) { g[col] += v; }, gT, gA, gdp, gpp);
         }
       }
   });

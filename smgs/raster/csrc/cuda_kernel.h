@@ -8,12 +8,10 @@
 #include <cstddef>
 #include <cstdint>
 
+#include "packed_row.h"  // the packed per-splat rows (input order here), the CPU kernel's layout
+
 namespace smgs {
 namespace cuda {
-
-// Packed per-splat row, input order: the CPU kernel's layout (parameters, colours, regularised values).
-// P_CA..P_CC: in a parameter row the conic's factor (splat_factor), in a gradient row dL/d(a, b, c).
-enum { P_MX = 0, P_MY, P_CA, P_CB, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL };
 
 // Dynamic shared memory of a compositing block (a batch of packed rows; the default 48 KiB limit less
 // room for the kernels' static shared variables), and so the longest packed row.

@@ -16,8 +16,9 @@
 // composites, the splat, its list position and the state before it (T, A, d_past, p_past, and for
 // softmax the colour state) in per-thread records in global memory (max_cnt records per thread,
 // float4-written, a persistent grid as the v2 compositing backward); then it runs the adjoint back
-// to front, cpu_pixel.cpp's `pixel_bwd_tiles` step by step, adding each step's gradients to its
-// splat's row with atomics (the lanes of a warp composite different splats at a step).
+// to front, step by step the code of cpu_pixel.cpp's `pixel_bwd_tiles` (pixel_step_bwd.h), adding
+// each step's gradients to its splat's row with atomics (the lanes of a warp composite different
+// splats at a step).
 #define SMGS_CUDA_FAST 1
 #include <cuda_runtime.h>
 
@@ -26,6 +27,7 @@
 
 #include "cuda_common.cuh"
 #include "cuda_pixel.h"
+#include "pixel_step_bwd.h"
 #include "splat_math.h"
 
 namespace smgs {
@@ -108,7 +110,9 @@ struct State {
 // first k_max list entries.
 __device__ __forceinline__ bool in_head(const Scene& sc, int cnt, int pos) { return (sc.patch ? pos : cnt) < sc.kmax; }
 
-// cpu_pixel.cpp's step<SOFT>: false (and no change) where the pixel stops before this splat.
+// cpu_pixel.cpp's step<SOFT>: false (and no change) where the pixel stops before this splat. Written
+// out again here: the forward kernels calling one shared copy got another register allocation from
+// ptxas, with spills in the kernels for other channel counts than 3.
 template <bool SOFT, int NCT>
 __device__ __forceinline__ bool step(const Scene& sc, State& px, Chan<NCT>& C, int nch, const Entry& e) {
   const float* s = sc.pk + int64_t(e.id) * sc.S;
@@ -282,77 +286,17 @@ __global__ void __launch_bounds__(kBlock, 2) bwd_kernel(Scene sc, PixelIn pin, B
       const float4* r4 = reinterpret_cast<const float4*>(mine + int64_t(k) * RW);
       const float4 pre = r4[0], idp = r4[1];
       const int id = __float_as_int(idp.x), pos = __float_as_int(idp.y);
-      const float Tp = pre.x, Ap = pre.y, dpp = pre.z, ppp = pre.w;
-      const float* s = sc.pk + int64_t(id) * sc.S;
-      const Factor f{s[P_CA], s[P_CB], s[P_CC]};
-      const float al = GEF ? s[P_AL] : 1.f;
-      const Quad<float> q = splat_quad(P.px, P.py, s[P_MX], s[P_MY], f);
-      const Absorb<float> ab = splat_absorb<GEF>(q.q, s[P_O], al);
-      const float a = ab.a, p = -q.q, d = s[P_D];
-      const bool head = SOFT && in_head(sc, k, pos), soft = head && Ap > 0.f;
-      SoftFwd<float> sf{};
-      float aT = a * Tp, r = 1.f, wk = 1.f;   // a head step at A = 0 has wk = 1 (step<true>)
-      if (soft) {
-        sf = softmax_fwd(Tp, Ap, dpp, ppp, a, p, d, s[P_BE], s[P_GA], sc.solved);
-        aT = sf.aT;
-        r = sf.r;
-        wk = sf.wk;
-      }
       float* g = w.grad + int64_t(id) * sc.S;
-      // adjoint of C' = C·r + c·aT (depth is channel nch)
-      float g_aT = 0.f, g_r = 0.f;
-      for (int c = 0; c < nch; ++c) {
-        g_aT += gC[c] * s[P_COL + c];
-        atomicAdd(g + P_COL + c, gC[c] * aT);
-      }
-      g_aT += gC[nch] * d;
-      float g_d = gC[nch] * aT, g_p = 0.f, g_wk = 0.f, g_a, gTpre;
-      if (soft) {
-        for (int c0 = 0; c0 < nc; c0 += 4) {
-          const float4 h = r4[2 + c0 / 4];
-          const float hc[4] = {h.x, h.y, h.z, h.w};
-          for (int m = 0; m < 4 && c0 + m < nc; ++m) {
-            g_r += gC[c0 + m] * hc[m];
-            gC[c0 + m] = gC[c0 + m] * r;
-          }
-        }
-      }
-      if (head) {   // adjoint of the running means d' = d + (d_k - d)·wk, p' likewise
-        g_wk = gdp * (d - dpp) + gpp * (p - ppp);
-        g_d += gdp * wk;
-        g_p = gpp * wk;
-        gdp -= gdp * wk;
-        gpp -= gpp * wk;
-      }
-      if (soft) {
-        const SoftGrad<float> sg = softmax_bwd(sf, Tp, Ap, dpp, ppp, a, p, s[P_BE], s[P_GA], sc.solved, gT, gA, g_r,
-                                               g_aT, g_wk);
-        gTpre = sg.T;
-        gA = sg.A;
-        g_a = sg.a;
-        g_p += sg.p;
-        g_d += sg.d;
-        gdp += sg.dp;
-        gpp += sg.pp;
-        atomicAdd(g + P_BE, sg.beta);
-        atomicAdd(g + P_GA, sg.gamma);
-      } else if (SOFT) {
-        float gAv;
-        vanilla_coef_bwd(Tp, Ap, a, gT, gA, g_aT, g_wk, gTpre, gAv, g_a);
-        gA = gAv;
-      } else {
-        vanilla_step_bwd(Tp, a, g_aT + gA, gT, gTpre, g_a);   // A' = A + aT: dL/dA passes through
-      }
-      gT = gTpre;
-      atomicAdd(g + P_D, g_d);
-      const KernGrad<float> kg = splat_kernel_bwd<GEF>(q, ab, f, s[P_O], al, g_a, g_p);
-      atomicAdd(g + P_MX, kg.mx);
-      atomicAdd(g + P_MY, kg.my);
-      atomicAdd(g + P_CA, kg.ca);
-      atomicAdd(g + P_CB, kg.cb);
-      atomicAdd(g + P_CC, kg.cc);
-      atomicAdd(g + P_O, kg.o);
-      if (GEF) atomicAdd(g + P_AL, kg.alpha);
+      const auto chan = [&](int c0, float* h) {   // the channel state before the step (softmax)
+        const float4 v = r4[2 + c0 / 4];
+        h[0] = v.x;
+        h[1] = v.y;
+        h[2] = v.z;
+        h[3] = v.w;
+      };
+      pixel_step_bwd<GEF, SOFT>(sc.pk + int64_t(id) * sc.S, P.px, P.py, pre.x, pre.y, pre.z, pre.w,
+                                SOFT && in_head(sc, k, pos), sc.solved, nch, gC, chan,
+                                [&](int col, float v) { atomicAdd(g + col, v); }, gT, gA, gdp, gpp);
     }
   }
 }
