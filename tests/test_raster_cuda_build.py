@@ -12,6 +12,7 @@ import os
 import re
 import shutil
 import subprocess
+import sys
 import sysconfig
 from pathlib import Path
 
@@ -19,18 +20,11 @@ import pytest
 
 from smgs.raster import cuda as cuda_backend
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from ptxas_report import nvcc as _nvcc  # noqa: E402   (where nvcc is: PATH, CUDA_HOME, /usr/local/cuda)
+
 CSRC = Path(cuda_backend.__file__).parent / "csrc"
 TIMEOUT_S = 600   # a shared 2-core machine under load; normally ~20 s and ~50 s
-
-
-def _nvcc() -> str | None:
-    found = shutil.which("nvcc")
-    if found:
-        return found
-    for home in (os.environ.get("CUDA_HOME"), os.environ.get("CUDA_PATH"), "/usr/local/cuda"):
-        if home and (Path(home) / "bin" / "nvcc").is_file():
-            return str(Path(home) / "bin" / "nvcc")
-    return None
 
 
 def _cuda_include(nvcc: str) -> Path | None:
