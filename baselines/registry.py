@@ -23,7 +23,7 @@ import torch
 
 from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, RunSettings, SceneNeeds
 from smgs.data.scene import Scene
-from smgs.device import resolve_device
+from smgs.device import as_device
 
 ENTRY_POINT_GROUP = "smgs.methods"
 
@@ -142,9 +142,9 @@ def _takes(cls: type, keyword: str) -> bool:
 def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None, *,
                   device: torch.device | str, run: RunSettings | None = None) -> Method:
     """Check the scene against the method's needs, then set the method up on ``device`` (a
-    ``torch.device`` or a setting of ``smgs.device.resolve_device``: "auto", "cpu", "cuda:1") for
-    the protocol's ``run`` (None outside a protocol run)."""
-    dev = resolve_device(device)
+    resolved ``torch.device``, or a setting such as "auto", "cpu", "cuda:1", resolved here:
+    ``smgs.device.as_device``) for the protocol's ``run`` (None outside a protocol run)."""
+    dev = as_device(device)
     cls = method_class(name)
     for keyword, why in (("device", "creates its tensors on that device"),
                          ("run", "reads the protocol's steps, seed and budget from it")):

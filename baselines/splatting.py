@@ -16,7 +16,7 @@ from baselines.method import RunSettings, SceneNeeds
 from baselines.trainer_settings import train_config
 from smgs.camera import Camera
 from smgs.data.scene import Scene
-from smgs.device import resolve_device
+from smgs.device import as_device
 from smgs.raster import RenderOutput
 from smgs.atomic import atomic_write_bytes
 from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
@@ -73,9 +73,9 @@ class GaussianSplatting:
 
         config = train_config(config or {}, run) if run else config or {}
         cfg = from_dict(TrainConfig, merge_config(config, train_overrides(splats, where)))
-        g = gaussians_from_splats(splats, cfg.gaussians, splats_extent(splats, scene.extent, where),
-                                  device=resolve_device(device))
-        return cls(scene, cfg, name=cfg.mode, device=device, gaussians=g)
+        dev = as_device(device)
+        g = gaussians_from_splats(splats, cfg.gaussians, splats_extent(splats, scene.extent, where), device=dev)
+        return cls(scene, cfg, name=cfg.mode, device=dev, gaussians=g)
 
     def export_ply(self, path: str | Path) -> Path:
         """Write the model as a 3DGS PLY (atomically; ``smgs.io.ply`` documents the layout)."""

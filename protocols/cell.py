@@ -16,6 +16,7 @@ from smgs.env import versions
 from protocols.cell_lock import cell_lock
 from protocols.live_cells import live_cell
 from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config_hash, read_result, write_result
+from protocols.run_settings import CellSettings, cell_settings
 from protocols.sections import BudgetConfig
 
 LOG = "log.txt"
@@ -24,30 +25,21 @@ VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_ro
             "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
-def result_hash(cfg: dict) -> str:
+def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
     """The identity of a cell's result: its config without the volatile keys, and the method's
     complete settings where it gives them (``baselines.method.ResolvedSettings``), so that a
-    changed default retrains instead of reusing a result computed under the old one."""
+    changed default retrains instead of reusing a result computed under the old one. ``settings``:
+    the cell's ``CellSettings`` where the caller has them (made here otherwise)."""
     ident = {k: v for k, v in cfg.items() if k not in VOLATILE}
     if isinstance(cfg.get("budget"), dict):
         try:
             ident["budget"] = BudgetConfig.of(cfg).identity()
         except (TypeError, ValueError):   # refused before any cell runs (protocols.validate)
             pass
-    resolved = _resolved_settings(cfg)
+    resolved = (settings if settings is not None else cell_settings(cfg)).resolved
     if resolved is not None:
         ident["resolved_settings"] = resolved
     return config_hash(ident)
-
-
-def _resolved_settings(cfg: dict) -> dict | None:
-    from baselines.registry import resolved_settings
-    from protocols.run_settings import method_settings, run_settings
-
-    try:
-        return resolved_settings(cfg["method"]["name"], method_settings(cfg), run_settings(cfg))
-    except (KeyError, ImportError, TypeError, ValueError):
-        return None   # a method or config that cannot be resolved fails in training, with its error
 
 
 def _logger(run_dir: Path) -> logging.Logger:
@@ -88,7 +80,8 @@ def run_cell(payload: dict) -> dict:
         cfg: dict = with_device(payload["config"])
     except DeviceError as e:   # before anything is written: no half-made run directory
         return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
-    h = result_hash(cfg)
+    settings = cell_settings(cfg)   # the config resolved once: the hash and the method read it
+    h = result_hash(cfg, settings)
     base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
     try:
         if _finished(run_dir / RESULTS_FILE, h, bool(cfg.get("force", False))):
@@ -99,12 +92,12 @@ def run_cell(payload: dict) -> dict:
                 return {"key": payload["key"], "status": "skipped", "busy": True,
                         "error": f"held by {holder.describe()}, which is writing this cell; left to it "
                                  "(rerun later to pick up its result, or on_busy=wait to wait for it)"}
-            return _run_locked(payload["key"], cfg, run_dir, h, base)
+            return _run_locked(payload["key"], cfg, settings, run_dir, h, base)
     except Exception as e:  # the folder or its lock is the problem: recorded where it can be
         return _failed(payload["key"], run_dir, base, e, None)
 
 
-def _run_locked(key: str, cfg: dict, run_dir: Path, h: str, base: RunResult) -> dict:
+def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: str, base: RunResult) -> dict:
     """The cell's run, with its folder's lock held (``protocols.cell_lock``)."""
     log = None
     try:
@@ -118,7 +111,7 @@ def _run_locked(key: str, cfg: dict, run_dir: Path, h: str, base: RunResult) -> 
         atomic_write_text(run_dir / "config.yaml", _yaml(cfg))
         from protocols.train_loop import train_and_evaluate
         with live_cell(run_dir):
-            result = train_and_evaluate(cfg, run_dir, base, log)
+            result = train_and_evaluate(cfg, settings, run_dir, base, log)
         if result.config_hash != h:  # a result is only ever recorded under its own config
             raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
     except KeyboardInterrupt:

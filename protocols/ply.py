@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from protocols.results import RunResult
+from protocols.run_settings import CellSettings
 
 PLY_FILE = "point_cloud.ply"
 """The file name of a run's exported model (the name the original 3DGS code uses)."""
@@ -27,17 +28,17 @@ def sha256(path: Path | str) -> str:
     return h.hexdigest()
 
 
-def make_method(cfg: dict, scene, result: RunResult, device: torch.device):
-    """The run's method: created by name to be trained or, when ``cfg["ply"]`` names a file
-    (``protocols.evaluate_ply``), the model of that file with zero training steps; ``result.source``
-    then records where it came from."""
+def make_method(cfg: dict, settings: CellSettings, scene, result: RunResult, device: torch.device):
+    """The run's method, created with the cell's ``settings`` (``protocols.run_settings.cell_settings``):
+    by name to be trained or, when ``cfg["ply"]`` names a file (``protocols.evaluate_ply``), the model
+    of that file with zero training steps; ``result.source`` then records where it came from."""
     from baselines.registry import create_method
-    from protocols.run_settings import method_settings, run_settings
 
     name = cfg["method"]["name"]
+    method_cfg, run = settings.for_method()
     src = cfg.get("ply")
     if not src:
-        return create_method(name, scene, method_settings(cfg), device=device, run=run_settings(cfg))
+        return create_method(name, scene, method_cfg, device=device, run=run)
     from baselines.splatting import GaussianSplatting
     from smgs.io.ply import read_ply
 
@@ -50,8 +51,7 @@ def make_method(cfg: dict, scene, result: RunResult, device: torch.device):
     if splats.mode != name:
         raise ValueError(f"{path} holds a {splats.mode} model (extras: {sorted(splats.extras) or 'none'}), "
                          f"the run is for method {name!r}")
-    method = GaussianSplatting.from_splats(scene, splats, method_settings(cfg), where=path, device=device,
-                                          run=run_settings(cfg))
+    method = GaussianSplatting.from_splats(scene, splats, method_cfg, where=path, device=device, run=run)
     result.source = {"kind": "pretrained", "trained_here": False, "ply": str(path.resolve()), "sha256": digest,
                      "format": splats.meta.get("format"), "sh_degree": splats.sh_degree,
                      "num_gaussians": len(splats), "written_by": "smgs" if "version" in splats.meta else "another tool",

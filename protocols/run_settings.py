@@ -4,10 +4,11 @@ which each method maps onto its own keys."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from baselines.method import RunSettings
-from baselines.registry import merge_config
+from baselines.registry import merge_config, resolved_settings
 from protocols.sections import BudgetConfig, ProtocolConfig
 
 
@@ -26,3 +27,37 @@ def run_settings(cfg: dict) -> RunSettings:
                        budget_kind=str(budget.kind), grad_threshold=budget.grad_threshold, cap=budget.cap,
                        schedule_steps=None if own_steps else protocol.schedule_steps,
                        backend=cfg.get("backend", "auto"))
+
+
+@dataclass(frozen=True)
+class CellSettings:
+    """What a cell's method is created with, worked out once per cell: the hash of its result
+    (``protocols.cell.result_hash``) and the method (``protocols.ply.make_method``) both read it.
+    ``resolved``: the method's complete settings (``baselines.method.ResolvedSettings``), None for a
+    method that gives none or a config it refuses. ``error``: why the method's or the run's settings
+    could not be made from the config; raised where the method is built, so the cell fails with it."""
+
+    method: dict[str, Any] | None
+    run: RunSettings | None
+    resolved: dict[str, Any] | None
+    error: Exception | None = None
+
+    def for_method(self) -> tuple[dict[str, Any], RunSettings]:
+        """(the method's settings, the RunSettings) to create the method with, or the error."""
+        if self.error is not None:
+            raise self.error
+        return self.method, self.run
+
+
+def cell_settings(cfg: dict) -> CellSettings:
+    """A cell's ``CellSettings``. A config that cannot be resolved is recorded, not raised: its cell
+    fails in training, with the error, as one that fails any other way."""
+    try:
+        method, run = method_settings(cfg), run_settings(cfg)
+    except (KeyError, ImportError, TypeError, ValueError) as e:
+        return CellSettings(None, None, None, e)
+    try:
+        resolved = resolved_settings(cfg["method"]["name"], method, run)
+    except (KeyError, ImportError, TypeError, ValueError):
+        resolved = None   # the method refuses these settings: it raises the error when it is created
+    return CellSettings(method, run, resolved)

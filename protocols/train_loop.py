@@ -24,7 +24,7 @@ from protocols.fps_slot import fps_slot
 from protocols.live_cells import NeighbourLog
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
-from protocols.run_settings import run_settings
+from protocols.run_settings import CellSettings
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
 from smgs.atomic import atomic_write_bytes, atomic_write_text
@@ -127,20 +127,22 @@ def _quantiles(t: torch.Tensor) -> dict[str, float]:
     return dict(zip(("p05", "p25", "p50", "p75", "p95"), map(float, q))) | {"mean": float(t.mean())}
 
 
-def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging.Logger) -> RunResult:
+def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result: RunResult,
+                       log: logging.Logger) -> RunResult:
     """One run: train (with checkpoints and intermediate evaluations), then the final metrics,
     speed, diagnostics and view consistency. ``cfg["device"]`` is the resolved device
-    (``protocols.cell.with_device``)."""
+    (``protocols.cell.with_device``); ``settings`` the cell's resolved settings (``cell_settings``)."""
     device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
-    method = make_method(cfg, scene, result, device)   # trained here, or read from a PLY (protocols.ply)
+    method = make_method(cfg, settings, scene, result, device)   # trained, or read from a PLY (protocols.ply)
+    run = settings.run   # made: make_method raised otherwise
     log.info("device: %s", device_name(device))
     ev = EvalConfig.of(cfg)
     test_rgb = [v.rgb.to(device) for v in scene.test]
     desc = method.describe()
     result.hparams = str(desc.get("hparams", ""))
-    steps = 0 if result.source else run_settings(cfg).steps   # a model read from a PLY is scored as it is
+    steps = 0 if result.source else run.steps   # a model read from a PLY is scored as it is
     plan = run_plan(desc, ev, scene)
     for line in plan:
         log.info("plan: %s", line)
@@ -175,7 +177,7 @@ def train_and_evaluate(cfg: dict, run_dir: Path, result: RunResult, log: logging
     if peak.baseline_bytes:   # resident at the training block's entry: peak minus this is the run's own
         result.diagnostics["peak_memory_baseline_mb"] = peak.baseline_bytes / 2**20
     result.diagnostics["collapse"] = watch.assess(result.num_gaussians, coverage, plan,
-                                                  run_settings(cfg).grad_threshold, log)
+                                                  run.grad_threshold, log)
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
             result.consistency = consistency(method, scene, run_dir, ev, device)

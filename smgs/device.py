@@ -1,5 +1,6 @@
 """Where a run computes: the ``device`` setting (``auto`` | ``cpu`` | ``cuda`` | ``cuda:N``), checked
-once at the edge and then passed as a ``torch.device`` to everything that creates a tensor.
+once at the edge (``resolve_device``; ``as_device`` where a function takes either) and then passed as
+a ``torch.device`` to everything that creates a tensor.
 
 ``auto`` is the first CUDA device when torch sees one, else the CPU. Asking for CUDA where there is
 none is an error, never a silent CPU run; so is a renderer backend that cannot render on the
@@ -64,6 +65,16 @@ def resolve_device(spec: str | torch.device | None) -> torch.device:
         raise DeviceError(f"device={spec}, but torch sees {n} CUDA device(s) (cuda:0..cuda:{n - 1}); "
                           f"use one of those or device=cuda (check CUDA_VISIBLE_DEVICES)")
     return torch.device("cuda", index)
+
+
+def as_device(device: torch.device | str | None) -> torch.device:
+    """The ``torch.device`` to compute on, resolved once, where a setting enters: a device as
+    ``resolve_device`` returns one (the CPU, or CUDA with an index) is used as it is; a setting (a
+    string, None for ``auto``, an index-less ``cuda``) is resolved here."""
+    if isinstance(device, torch.device) and (device.type == "cpu"
+                                             or (device.type == "cuda" and device.index is not None)):
+        return device
+    return resolve_device(device)
 
 
 def check_backend(backend: str, device: torch.device) -> None:

@@ -17,7 +17,7 @@ import torch
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
-from smgs.device import check_backend, generator_state, resolve_device, restore_generator
+from smgs.device import as_device, check_backend, generator_state, restore_generator
 from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
 from smgs.raster.checks import NonFiniteInputError
@@ -66,8 +66,8 @@ def active_sh_degree(iteration: int, interval: int, max_degree: int) -> int:
 
 
 class Trainer:
-    """Trains Gaussians on a ``Scene`` with a ``TrainConfig`` on ``device`` (``smgs.device``:
-    a ``torch.device`` or a setting such as "auto", "cuda:1"). Every tensor of the run lives there:
+    """Trains Gaussians on a ``Scene`` with a ``TrainConfig`` on ``device`` (``smgs.device.as_device``:
+    a resolved ``torch.device``, used as it is, or a setting such as "auto", "cuda:1"). Every tensor of the run lives there:
     the scene's training images and background are copied there once. Deterministic for a given
     seed and device (initialisation, view order, random backgrounds and split samples use private
     generators on the device, saved in checkpoints). ``gaussians`` starts from given Gaussians (e.g.
@@ -77,7 +77,7 @@ class Trainer:
                  device: torch.device | str) -> None:
         mode_flags(cfg.mode)  # validates the mode
         check_sort(cfg.sort)
-        self.device = resolve_device(device)
+        self.device = as_device(device)
         check_backend(cfg.backend, self.device)
         keep_freed_buffers()  # per-step image temporaries reuse heap pages (see smgs.train.allocator)
         self.scene = scene
