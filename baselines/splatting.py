@@ -22,7 +22,7 @@ from smgs.atomic import atomic_write_bytes
 from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
                                splats_from_trainer, train_overrides)
 from smgs.io.ply import PlySplats, read_ply, write_ply
-from smgs.train.config import TrainConfig, from_dict, to_dict
+from smgs.train.config import TrainConfig, current_train_keys, from_dict, to_dict
 from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer
 
@@ -147,7 +147,10 @@ class GaussianSplatting:
         state = load_weights(file, map_location=self.device)
         if state.get("method") != self.name:
             raise ValueError(f"checkpoint {path} is of method {state.get('method')!r}, not {self.name!r}")
-        diff = config_difference(state.get("trainer", {}).get("config"), to_dict(self.config))
+        saved = state.get("trainer", {}).get("config")
+        if isinstance(saved, dict):   # written before a key's rename: read under today's names
+            saved = current_train_keys(saved)
+        diff = config_difference(saved, to_dict(self.config))
         if diff:
             raise ValueError(f"checkpoint {file} was trained under another config ({diff}); it cannot "
                              "be resumed under this one (delete it, or rerun with --force)")

@@ -8,6 +8,7 @@ from typing import Any
 
 from baselines.method import RunSettings
 from baselines.registry import merge_config
+from smgs.train.config import DensifyConfig, current_keys
 
 SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
 
@@ -16,8 +17,8 @@ def train_config(config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
     """The TrainConfig dict of a run: the method's ``config`` (its own settings and the dataset's
     overrides), then the run's step count, seed, backend and budget."""
     mc = merge_config(config, {})
-    densify = dict(mc.get("densify") or {})
-    densify.update(budget=run.budget_kind)
+    densify = current_keys(DensifyConfig, dict(mc.get("densify") or {}))   # its earlier key names as today's
+    densify.update(budget_kind=run.budget_kind)
     if run.grad_threshold is not None:   # MCMC budgets have none
         densify["grow_grad2d"] = run.grad_threshold
     if run.cap is not None:
@@ -33,11 +34,11 @@ def scale_schedule(mc: dict[str, Any], steps: int, schedule_steps: int | None) -
     interval. Unscaled, a 3000-step run would reset every opacity to 0.01 at its last step."""
     if not schedule_steps or steps == int(schedule_steps):
         return
-    from smgs.train import BUDGETS, DensifyConfig, TrainConfig
+    from smgs.train import BUDGETS, TrainConfig
 
     f = steps / int(schedule_steps)
     d = mc["densify"]
-    defaults = {**vars(DensifyConfig()), **BUDGETS.get(d.get("budget"), {})}   # the preset's schedule
+    defaults = {**vars(DensifyConfig()), **BUDGETS.get(d.get("budget_kind"), {})}   # the kind's schedule
     for k in SCHEDULE_KEYS:
         v = d.get(k, defaults[k])
         if v is not None:

@@ -67,7 +67,7 @@ def _config(scene_name: str, method: str, backend: str) -> dict:
     else:
         cfg = {"mode": method, "steps": 30_000,
                "gaussians": {"init": "sfm"},
-               "densify": {"budget": "cap", "cap": 1100, "refine_start": 0, "refine_every": 25}}
+               "densify": {"budget_kind": "cap", "cap": 1100, "refine_start": 0, "refine_every": 25}}
     cfg["backend"] = backend
     return cfg
 

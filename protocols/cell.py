@@ -18,6 +18,7 @@ from protocols.live_cells import live_cell
 from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config_hash, read_result, write_result
 from protocols.run_settings import CellSettings, cell_settings
 from protocols.sections import BudgetConfig
+from smgs.train.config import earlier_train_keys
 
 LOG = "log.txt"
 # Keys of a cell's config that do not change its result (where and how it runs).
@@ -37,8 +38,8 @@ def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
         except (TypeError, ValueError):   # refused before any cell runs (protocols.validate)
             pass
     resolved = (settings if settings is not None else cell_settings(cfg)).resolved
-    if resolved is not None:
-        ident["resolved_settings"] = resolved
+    if resolved is not None:   # a renamed setting keeps the name results were hashed with
+        ident["resolved_settings"] = earlier_train_keys(resolved)
     return config_hash(ident)
 
 

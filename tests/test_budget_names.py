@@ -64,3 +64,54 @@ def test_the_thresholds_are_the_papers_groups():
         warnings.simplefilter("error")
         with pytest.raises(ValueError, match="unknown kind 'cap'.*budget.kind|unknown kind"):
             BudgetConfig.of({"budget": {"name": "cap7", "cap": 7}})
+
+
+def test_the_densify_section_names_the_kind_budget_kind_and_reads_its_earlier_name():
+    """``DensifyConfig.budget_kind`` was ``budget``: a dict with the earlier name (a method config,
+    a checkpoint's config) reads as today's, one with both names is refused, and the form a
+    finished result was hashed with keeps the earlier name."""
+    from smgs.train.config import (DensifyConfig, TrainConfig, current_train_keys, densify_config,
+                                   earlier_train_keys, from_dict, to_dict)
+
+    assert from_dict(DensifyConfig, {"budget": "mcmc", "cap": 3}) == densify_config("mcmc", cap=3)
+    with pytest.raises(ValueError, match="'budget' is the earlier name of 'budget_kind'"):
+        from_dict(TrainConfig, {"densify": {"budget": "full", "budget_kind": "mini"}})
+    now = to_dict(from_dict(TrainConfig, {"densify": {"budget_kind": "5pct"}}))
+    earlier = earlier_train_keys(now)
+    assert earlier["densify"]["budget"] == "5pct" and "budget_kind" not in earlier["densify"]
+    assert current_train_keys(earlier) == now and earlier_train_keys(earlier) == earlier
+
+
+def test_a_checkpoint_written_under_the_earlier_name_resumes(tmp_path):
+    import torch
+
+    from baselines.registry import create_method
+    from baselines.splatting import CHECKPOINT
+    from smgs.data.patterns import pattern_scene
+    from smgs.train.config import earlier_train_keys
+
+    scene = pattern_scene("circle4", 8)
+    cfg = {"steps": 2, "densify": {"budget_kind": "cap", "cap": 4}}
+    a = create_method("3dgs", scene, cfg, device="cpu")
+    a.train_step(0)
+    a.save(tmp_path / "ck")
+    state = torch.load(tmp_path / "ck" / CHECKPOINT, weights_only=True)
+    state["trainer"]["config"] = earlier_train_keys(state["trainer"]["config"])   # as it was written then
+    assert "budget" in state["trainer"]["config"]["densify"]
+    torch.save(state, tmp_path / "ck" / CHECKPOINT)
+    b = create_method("3dgs", scene, cfg, device="cpu")
+    b.load(tmp_path / "ck")
+    assert b.trainer.step_count == a.trainer.step_count == 1
+
+
+def test_a_result_is_hashed_with_the_earlier_name(monkeypatch):
+    """The method's complete settings enter the result's hash with ``densify.budget``, the name
+    every finished result was hashed with, so the rename retrains nothing."""
+    import protocols.cell as cell_module
+
+    seen = []
+    monkeypatch.setattr(cell_module, "config_hash", lambda ident: seen.append(ident) or "h")
+    c = {**cell({"name": "5pct", "cap": None}), "method": {"name": "3dgs"}}
+    cell_module.result_hash(c)
+    densify = seen[0]["resolved_settings"]["densify"]
+    assert densify["budget"] == "5pct" and "budget_kind" not in densify

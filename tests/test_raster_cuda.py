@@ -306,6 +306,12 @@ def test_stiff_battery_cuda_finite_and_close_to_float64():
     0.25..30, opacity 1-1e-7, identical depths, 50 stacked splats, conic condition number 1e8, ...)
     on the GPU in float32, against the float64 reference: every output and gradient finite, within
     the battery's tolerances (the thresholds of the CPU backend's test)."""
+    check_stiff_battery()
+
+
+def check_stiff_battery() -> None:
+    """The stiff battery through ``rasterize_splats`` on the CUDA backend (whichever kernels
+    ``$SMGS_CUDA_KERNELS`` selects) against the float64 reference."""
     sensitive = ("beta=100000", "beta=1000", "conic_cond_1e8", "stacked50")
     n_rows = 0
     for name, spec in stability.stiff_cases():

@@ -23,6 +23,7 @@ from smgs.camera import Camera
 from smgs.raster import projection
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.sh import eval_sh, num_sh_bases
+from test_raster_projection_cpu import _scene
 
 REPO = Path(__file__).resolve().parents[1]
 OLD_COMMIT = "8887afe"   # the last projection_cpu.cpp with the math inline
@@ -78,21 +79,8 @@ def _scenes() -> list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor, Camer
 
 
 def _edge_scene(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Gaussians around the origin (the camera is at z ≈ −3), unnormalised quaternions, and in
-    tenths: behind the camera, far off the image, off-axis beyond 1.3× fov but large (the Jacobian
-    clamp binds), scales of 1e-5 and one of 0 (with eps2d = 0 the determinant clamp binds)."""
-    g = torch.Generator().manual_seed(seed)
-    means = torch.randn(n, 3, generator=g) * 2.0
-    quats = torch.randn(n, 4, generator=g) * (torch.rand(n, 1, generator=g) * 3 + 0.1)
-    scales = torch.rand(n, 3, generator=g) * 0.3 + 0.01
-    k = n // 10
-    means[:k, 2] = -3.5 - torch.rand(k, generator=g)
-    means[k:2 * k, 0] = 30 + 10 * torch.rand(k, generator=g)
-    means[2 * k:3 * k, 0] = 3.5 + torch.rand(k, generator=g)
-    scales[2 * k:3 * k] = 2.5 + torch.rand(k, 3, generator=g)
-    scales[3 * k:4 * k] = 1e-5 * (1 + torch.rand(k, 3, generator=g))
-    scales[4 * k] = 0.0
-    return means, quats, scales
+    """test_raster_projection_cpu's edge-case scene with its tiny and zero scales."""
+    return _scene(n, seed, tiny=True)
 
 
 @needs_cc

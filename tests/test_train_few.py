@@ -27,9 +27,9 @@ def scene():
 
 def _densify(strategy: str, **over) -> dict:
     if strategy == "mcmc":   # relocation and growth every 2 steps (at least one more each), up to 8
-        return {"budget": "mcmc", "cap": 8, "refine_start": 1, "refine_every": 2, **over}
+        return {"budget_kind": "mcmc", "cap": 8, "refine_start": 1, "refine_every": 2, **over}
     # every Gaussian a candidate (threshold ~0): clones and splits every 2 steps, reset every 5
-    return {"budget": "full", "refine_start": 1, "refine_every": 2, "reset_every": 5, "grow_grad2d": 1e-12, **over}
+    return {"budget_kind": "full", "refine_start": 1, "refine_every": 2, "reset_every": 5, "grow_grad2d": 1e-12, **over}
 
 
 def _trainer(scene, mode: str, sort: str, n: int, densify: dict) -> Trainer:

@@ -160,7 +160,7 @@ def test_noise_is_the_covariance_times_a_normal_sample():
 
 def _trainer(cap: int = 12, steps: int = 60, mode: str = "3dgs") -> Trainer:
     cfg = to_dict(pattern_config(mode, cap=cap, steps=steps))
-    cfg["densify"] = {"budget": "mcmc", "cap": cap, "refine_start": 2, "refine_every": 3, "refine_stop": steps}
+    cfg["densify"] = {"budget_kind": "mcmc", "cap": cap, "refine_start": 2, "refine_every": 3, "refine_stop": steps}
     return Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg), device="cpu")
 
 
@@ -171,7 +171,7 @@ def test_count_never_exceeds_the_cap():
     assert max(counts) == 12 and counts[0] == 4 and all(a <= b for a, b in zip(counts, counts[1:]))
     # more initial Gaussians than the cap: a random subset of cap of them is kept
     cfg = to_dict(pattern_config("3dgs", cap=3, steps=10))
-    cfg["densify"] = {"budget": "mcmc", "cap": 3}
+    cfg["densify"] = {"budget_kind": "mcmc", "cap": 3}
     tr = Trainer(pattern_scene("circle4", 16), from_dict(TrainConfig, cfg), device="cpu")
     assert len(tr.gaussians) == 3 and any("above the cap 3" in p for p in tr.plan)
 

@@ -120,7 +120,7 @@ def test_config_from_dict_roundtrip_and_errors():
     again = from_dict(TrainConfig, to_dict(cfg))
     assert again == cfg
     c = from_dict(TrainConfig, {"mode": "3dgs", "optim": "3dgs2023+softmaxgs_patterns",
-                                "densify": {"budget": "mini"}, "gaussians": {"beta": {"init": 5}}})
+                                "densify": {"budget_kind": "mini"}, "gaussians": {"beta": {"init": 5}}})
     assert c.optim.beta_lr == 3e-4 and c.densify.grow_grad2d == 5e-4
     assert c.gaussians.beta.init == 5.0 and isinstance(c.gaussians.beta.init, float)
     with pytest.raises(ValueError, match="unknown key"):
@@ -128,19 +128,19 @@ def test_config_from_dict_roundtrip_and_errors():
 
 
 def test_presets_apply_to_their_section_at_any_depth_and_alone():
-    """A section with a preset (optim by name, densify by budget) is built from that preset first
+    """A section with a preset (optim by name, densify by budget kind) is built from that preset first
     wherever it is built, also on its own; the renderer's constants are the trainer's defaults."""
     from smgs.raster import constants as K
     from smgs.train.config import DensifyConfig, OptimConfig
 
     assert from_dict(OptimConfig, {"name": "3dgs2023+softmaxgs_patterns", "beta_lr": 1e-3}) == \
         dataclasses.replace(HPARAMS["3dgs2023+softmaxgs_patterns"], beta_lr=1e-3)
-    assert from_dict(DensifyConfig, {"budget": "5pct", "cap": 7}) == densify_config("5pct", cap=7)
+    assert from_dict(DensifyConfig, {"budget_kind": "5pct", "cap": 7}) == densify_config("5pct", cap=7)
     assert from_dict(TrainConfig, {"densify": "light"}).densify == densify_config("light")
     with pytest.raises(ValueError, match="budget 'cap' needs cap"):
-        from_dict(TrainConfig, {"densify": {"budget": "cap"}})
+        from_dict(TrainConfig, {"densify": {"budget_kind": "cap"}})
     with pytest.raises(TypeError, match=r"densify\.cap='many': expected an int"):
-        from_dict(TrainConfig, {"densify": {"budget": "cap", "cap": "many"}})
+        from_dict(TrainConfig, {"densify": {"budget_kind": "cap", "cap": "many"}})
     assert (TrainConfig().k_max, TrainConfig().t_min) == (K.DEFAULT_K_MAX, K.T_MIN)
 
 

@@ -35,7 +35,7 @@ def test_statistics_skipped_only_while_the_cap_is_full():
     tr = _trainer(cap=8)
     tr.train_step(0)
     assert tr.strategy.grad2d.numel() == 4 and tr.strategy.count.sum() > 0
-    tr = _trainer(cap=4, densify={"budget": "cap", "cap": 4, "reset_every": 3000})
+    tr = _trainer(cap=4, densify={"budget_kind": "cap", "cap": 4, "reset_every": 3000})
     assert tr.strategy.wants_stats(4)               # size pruning reads the screen radii
 
 

@@ -35,11 +35,11 @@ def build(args: argparse.Namespace):
     from baselines.trainer_settings import train_config
     from smgs.data.datasets import load_scene
     from smgs.train import TrainConfig, from_dict
-    from smgs.train.config import BUDGETS
+    from smgs.train.config import budget_threshold
     from smgs.train.trainer import Trainer
 
     scene = load_scene("transforms", path=args.scene, rule="cpu", max_width=args.width, test_every=8)
-    grad = {"5pct": 4e-3, "mini": 5e-4, "light": 3e-4, "full": 2e-4}[args.budget]
+    grad = budget_threshold(args.budget)   # the kind's threshold, from its one home (BUDGETS)
     run = RunSettings(steps=args.steps, seed=args.seed, budget=args.budget, budget_kind=args.budget,
                       grad_threshold=grad, cap=None, schedule_steps=args.schedule_steps)
     mc = train_config({"mode": args.mode, "k_max": 128, "optim": "3dgs2023+softmaxgs_real",
@@ -48,7 +48,6 @@ def build(args: argparse.Namespace):
                    ("prune_screen_px", args.prune_screen_px), ("size_prune", args.size_prune)):
         if v is not None:
             mc["densify"][key] = v
-    assert args.budget in BUDGETS
     cfg = from_dict(TrainConfig, mc)
     return scene, Trainer(scene, cfg, device="cpu")
 

@@ -193,9 +193,11 @@ class DensifyConfig:
     above) or "mcmc" (Kheradmand et al. 2024, ``smgs.train.strategies.mcmc``), which reads ``cap`` as its
     ``cap_max``, the refinement schedule, ``prune_opacity`` as the dead-Gaussian threshold and the
     ``mcmc_*`` fields; it ignores the gradient, clone/split, pruning and reset fields.
+    ``budget_kind`` names the budget's kind (``BUDGETS``), whose settings the section starts from
+    (``densify_config``); ``budget`` is its earlier name (``RENAMED``).
     """
 
-    budget: str = "full"
+    budget_kind: str = "full"
     enabled: bool = True
     strategy: Literal["default", "mcmc"] = "default"
     grow_grad2d: float = 2e-4
@@ -242,13 +244,13 @@ def budget_threshold(kind: str) -> float | None:
     return None if spec.get("strategy") == "mcmc" else float(spec.get("grow_grad2d", DensifyConfig.grow_grad2d))
 
 
-def densify_config(budget: str = "full", **overrides: Any) -> DensifyConfig:
-    """A budget preset with overrides; ``cap`` requires a count."""
-    if budget not in BUDGETS:
-        raise ValueError(f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
-    cfg = DensifyConfig(budget=budget, **{**BUDGETS[budget], **overrides})
-    if budget in ("cap", "mcmc") and not cfg.cap:
-        raise ValueError(f"budget {budget!r} needs cap=<maximum number of Gaussians>")
+def densify_config(budget_kind: str = "full", **overrides: Any) -> DensifyConfig:
+    """A budget kind's settings (``BUDGETS``) with overrides; ``cap`` requires a count."""
+    if budget_kind not in BUDGETS:
+        raise ValueError(f"unknown budget {budget_kind!r}; known: {', '.join(BUDGETS)}")
+    cfg = DensifyConfig(budget_kind=budget_kind, **{**BUDGETS[budget_kind], **overrides})
+    if budget_kind in ("cap", "mcmc") and not cfg.cap:
+        raise ValueError(f"budget {budget_kind!r} needs cap=<maximum number of Gaussians>")
     if cfg.strategy not in ("default", "mcmc"):
         raise ValueError(f"unknown densification strategy {cfg.strategy!r}; expected 'default' or 'mcmc'")
     return cfg
@@ -354,28 +356,70 @@ def _optim_preset(name: str | None, **overrides: Any) -> OptimConfig:
     return dataclasses.replace(base, **overrides)
 
 
-def _densify_preset(budget: str | None, **overrides: Any) -> DensifyConfig:
-    return densify_config(budget if budget is not None else "full", **overrides)
+def _densify_preset(budget_kind: str | None, **overrides: Any) -> DensifyConfig:
+    return densify_config(budget_kind if budget_kind is not None else "full", **overrides)
 
 
 # Sections built from a named preset: the dict (or a bare string) names it under the key, the other
 # keys then override the preset's values.
 PRESETS: dict[type, tuple[str, Callable[..., Any]]] = {
     OptimConfig: ("name", _optim_preset),
-    DensifyConfig: ("budget", _densify_preset),
+    DensifyConfig: ("budget_kind", _densify_preset),
 }
+
+# Keys renamed since configs, checkpoints and result hashes were written with them: section -> {earlier
+# name: name now}. A dict with an earlier name is read as if it had today's (``current_keys``); a
+# result's hash keeps the earlier form (protocols.cell), so no finished run retrains for a rename.
+RENAMED: dict[type, dict[str, str]] = {
+    DensifyConfig: {"budget": "budget_kind"},
+}
+
+
+def current_keys(cls: type, data: dict[str, Any], where: str = "") -> dict[str, Any]:
+    """``data`` (a section of type ``cls``) with its earlier key names (``RENAMED``) as today's; one
+    given under both names is an error that names them."""
+    renamed = {old: new for old, new in RENAMED.get(cls, {}).items() if old in data}
+    for old, new in renamed.items():
+        if new in data:
+            raise ValueError(f"{cls.__name__}{' at ' + where if where else ''}: {old!r} is the earlier name of "
+                             f"{new!r}; give it once, as {new!r}")
+    return {renamed.get(k, k): v for k, v in data.items()}
+
+
+def current_train_keys(data: dict[str, Any]) -> dict[str, Any]:
+    """A TrainConfig dict (e.g. a checkpoint's) with every section's earlier key names as today's."""
+    return _rename_sections(data, lambda cls, section: current_keys(cls, section))
+
+
+def earlier_train_keys(data: dict[str, Any]) -> dict[str, Any]:
+    """A TrainConfig dict with each renamed key under its earlier name (``RENAMED``): the form in
+    which finished results were hashed (protocols.cell.result_hash)."""
+    def earlier(cls: type, section: dict[str, Any]) -> dict[str, Any]:
+        back = {new: old for old, new in RENAMED[cls].items()}
+        return {back.get(k, k): v for k, v in section.items()}
+
+    return _rename_sections(data, earlier)
+
+
+def _rename_sections(data: dict[str, Any], rename: Callable[[type, dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
+    hints = typing.get_type_hints(TrainConfig)
+    out = dict(data)
+    for f in dataclasses.fields(TrainConfig):
+        if isinstance(out.get(f.name), dict) and hints[f.name] in RENAMED:
+            out[f.name] = rename(hints[f.name], out[f.name])
+    return out
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | str | None, _where: str = "") -> T:
     """Build a (nested) config dataclass from a plain dict (e.g. ``OmegaConf.to_container``).
     Unknown keys are an error that lists the known ones; missing keys keep their defaults (a field
     without a default is an error naming it). A section with a preset (``PRESETS``: ``optim`` by
-    hyperparameter-set name, ``densify`` by ``budget``) may be given as that name alone; the preset
-    is applied first, then the other keys."""
+    hyperparameter-set name, ``densify`` by ``budget_kind``) may be given as that name alone; the
+    preset is applied first, then the other keys. A key's earlier name (``RENAMED``) reads as today's."""
     preset = PRESETS.get(cls)
     if isinstance(data, str) and preset:
         data = {preset[0]: data}
-    data = dict(data or {})
+    data = current_keys(cls, dict(data or {}), _where)
     hints = typing.get_type_hints(cls)
     fields = dataclasses.fields(cls)
     names = {f.name for f in fields}

@@ -75,7 +75,7 @@ class DefaultStrategy:
         c = self.cfg
         if not c.enabled:
             return ["densification: off (fixed count)"]
-        return [f"densification: budget {c.budget} (grad {c.grow_grad2d:g}{', cap ' + str(c.cap) if c.cap else ''}), "
+        return [f"densification: budget {c.budget_kind} (grad {c.grow_grad2d:g}{', cap ' + str(c.cap) if c.cap else ''}), "
                 f"steps {c.refine_start}-{c.refine_stop} every {c.refine_every}",
                 "opacity reset: off; size pruning: off (only after a reset)" if c.reset_every is None
                 else f"opacity reset every {c.reset_every}; size pruning {self.size_prune:g} x extent"

@@ -111,7 +111,7 @@ class MCMCStrategy:
     # -- the Strategy interface --------------------------------------------------------------
     def describe(self) -> list[str]:
         c = self.cfg
-        return [f"densification: mcmc (budget {c.budget}, cap {c.cap}), relocation of opacity <= "
+        return [f"densification: mcmc (budget {c.budget_kind}, cap {c.cap}), relocation of opacity <= "
                 f"{c.prune_opacity:g} and growth x{1 + c.mcmc_grow_rate:g} at steps {c.refine_start}-"
                 f"{c.refine_stop} every {c.refine_every}; no opacity reset",
                 f"mcmc: position noise {c.mcmc_noise_lr:g} x lr gated by sigmoid(-{c.mcmc_gate_k:g}(o - "
