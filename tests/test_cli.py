@@ -38,6 +38,24 @@ def test_help_lists_every_subcommand_and_the_package_installs_the_command(capsys
     assert scripts == {"smgs": "smgs_cli.main:main"}
 
 
+def test_a_closed_pipe_stops_the_command_quietly():
+    """``smgs --help | head -1``: the reader has gone before the help is written. The command
+    stops with the shell's status for a closed pipe (141) and no traceback."""
+    import os
+    import subprocess
+    import sys
+
+    read, write = os.pipe()
+    os.close(read)   # nobody reads: the first write fails with EPIPE
+    try:
+        done = subprocess.run([sys.executable, "-c", "import sys; from smgs_cli.main import main; sys.exit(main())",
+                               "--help"], stdout=write, stderr=subprocess.PIPE, cwd=REPO, timeout=120, text=True)
+    finally:
+        os.close(write)
+    assert done.returncode == 141, done.stderr
+    assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
+
+
 def test_no_or_an_unknown_command_is_a_usage_error(capsys):
     assert main([]) == 2
     assert main(["frobnicate"]) == 2
