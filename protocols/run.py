@@ -35,12 +35,31 @@ def _method_overrides(method: str) -> list[str]:
     return ["method=plugin", f"method.name={method}"]
 
 
+def _budget_group(budget: str, overrides: list[str]) -> str:
+    """The budget file a cell's budget name is composed from: ``configs/budget/<name>.yaml``, or, for
+    a budget made on the command line (``budget=cap4 budget.cap=N budget.name=capN``, docs/usage.md),
+    the file it was made from."""
+    if (Path(CONFIG_DIR) / "budget" / f"{budget}.yaml").exists():
+        return budget
+    base = _given(overrides, "budget")
+    if base is not None and _given(overrides, "budget.name") == budget:
+        return base
+    raise ValueError(f"budget {budget!r} (grid.budgets) is no file in configs/budget/ ({', '.join(_budget_names())}); "
+                     f"to make one, start from a file and name it: budget=cap4 budget.cap=N budget.name={budget}")
+
+
+def _budget_names() -> list[str]:
+    return sorted(p.stem for p in (Path(CONFIG_DIR) / "budget").glob("*.yaml"))
+
+
 def _cell_config(cell: Cell, overrides: list[str]) -> dict:
     from hydra import compose
 
     # the user's key=value apply to every cell; the cell's own groups always win
+    own = [f"budget={_budget_group(cell.budget, overrides)}" if o.startswith("budget=") else o
+           for o in cell.overrides()[1:]]
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith(GRID_KEYS)]
-                  + _method_overrides(cell.method) + cell.overrides()[1:])
+                  + _method_overrides(cell.method) + own)
     return OmegaConf.to_container(cfg, resolve=True)
 
 
@@ -137,7 +156,10 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
     out = Path(cfg.out_dir)
     payloads = []
     for c in cells:
-        ccfg = _cell_config(c, overrides)
+        try:
+            ccfg = _cell_config(c, overrides)
+        except ValueError as e:   # ours (a budget with no file); Hydra's own errors keep their words
+            raise SystemExit(f"invalid config, nothing was run: {e}") from None
         payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg})
     return cells, payloads
 

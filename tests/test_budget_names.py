@@ -115,3 +115,27 @@ def test_a_result_is_hashed_with_the_earlier_name(monkeypatch):
     cell_module.result_hash(c)
     densify = seen[0]["resolved_settings"]["densify"]
     assert densify["budget"] == "5pct" and "budget_kind" not in densify
+
+
+def _plan(overrides: list[str]) -> list[dict]:
+    from hydra import compose, initialize_config_dir
+
+    from protocols.run import CONFIG_DIR, plan
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return plan(compose(config_name="config", overrides=overrides), overrides)[1]
+
+
+@pytest.mark.parametrize("base, cap, name, kind", [("cap4", 10, "cap10", "cap"), ("mcmc_4", 100, "mcmc_100", "mcmc")])
+def test_a_budget_made_on_the_command_line_runs_under_its_own_name(base, cap, name, kind):
+    """``budget=cap4 budget.cap=N budget.name=capN`` (docs/usage.md) makes a budget no file holds: its
+    cells are composed from the file it started from, with the user's cap, in their own folder."""
+    [payload] = _plan(["grid.methods=[3dgs]", f"budget={base}", f"budget.cap={cap}", f"budget.name={name}"])
+    assert payload["config"]["budget"] == {"name": name, "kind": kind, "cap": cap}
+    assert f"/3dgs/{name}/seed0" in payload["run_dir"]
+
+
+def test_a_grid_budget_that_no_file_holds_is_refused_with_the_way_to_make_it():
+    with pytest.raises(SystemExit, match=r"budget 'cap10' \(grid.budgets\) is no file in configs/budget/.*"
+                                         r"budget=cap4 budget.cap=N budget.name=cap10"):
+        _plan(["grid.methods=[3dgs]", "grid.budgets=[cap10]"])
