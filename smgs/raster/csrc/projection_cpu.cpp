@@ -170,17 +170,33 @@ void check_sh(const at::Tensor& sh, int64_t n, int64_t degree) {
                   sh.size(1) >= (degree + 1) * (degree + 1),
               "projection_cpu: sh must be float32 CPU [", n, ", >= ", (degree + 1) * (degree + 1), ", C]");
 }
+
+// The SH stage's inputs, checked, as both directions read them.
+struct ShIn {
+  at::Tensor means3d, sh;
+  int64_t n, K, C;
+  float center[3];
+};
+
+ShIn sh_in(const at::Tensor& means3d_, const at::Tensor& sh_, const std::vector<double>& center_, int64_t degree) {
+  const int64_t n = means3d_.size(0);
+  ShIn in{rows(means3d_, n, 3, "means3d"), {}, n, 0, 0, {}};
+  check_sh(sh_, n, degree);
+  TORCH_CHECK(center_.size() == 3, "projection_cpu: the camera centre is three floats");
+  in.sh = sh_.contiguous();
+  in.K = in.sh.size(1);
+  in.C = in.sh.size(2);
+  for (int k = 0; k < 3; ++k) in.center[k] = float(center_[k]);
+  return in;
+}
 }  // namespace
 
 at::Tensor sh_forward(const at::Tensor& means3d_, const at::Tensor& sh_, const std::vector<double>& center_,
                       int64_t degree, bool clamp) {
-  const int64_t n = means3d_.size(0);
-  const at::Tensor means3d = rows(means3d_, n, 3, "means3d");
-  check_sh(sh_, n, degree);
-  TORCH_CHECK(center_.size() == 3, "projection_cpu: the camera centre is three floats");
-  const at::Tensor sh = sh_.contiguous();
-  const int64_t K = sh.size(1), C = sh.size(2);
-  const float center[3] = {float(center_[0]), float(center_[1]), float(center_[2])};
+  const ShIn in = sh_in(means3d_, sh_, center_, degree);
+  const at::Tensor &means3d = in.means3d, &sh = in.sh;
+  const int64_t n = in.n, K = in.K, C = in.C;
+  const float* center = in.center;
   at::Tensor out = at::empty({n, C}, means3d.options());
   const float *M3 = means3d.data_ptr<float>(), *SH = sh.data_ptr<float>();
   float* O = out.data_ptr<float>();
@@ -195,14 +211,11 @@ at::Tensor sh_forward(const at::Tensor& means3d_, const at::Tensor& sh_, const s
 std::vector<at::Tensor> sh_backward(const at::Tensor& means3d_, const at::Tensor& sh_,
                                     const std::vector<double>& center_, int64_t degree, bool clamp,
                                     const at::Tensor& g_col_) {
-  const int64_t n = means3d_.size(0);
-  const at::Tensor means3d = rows(means3d_, n, 3, "means3d");
-  check_sh(sh_, n, degree);
-  TORCH_CHECK(center_.size() == 3, "projection_cpu: the camera centre is three floats");
-  const at::Tensor sh = sh_.contiguous();
-  const int64_t K = sh.size(1), C = sh.size(2);
+  const ShIn in = sh_in(means3d_, sh_, center_, degree);
+  const at::Tensor &means3d = in.means3d, &sh = in.sh;
+  const int64_t n = in.n, K = in.K, C = in.C;
+  const float* center = in.center;
   const at::Tensor g_col = rows(g_col_, n, C, "grad of colours");
-  const float center[3] = {float(center_[0]), float(center_[1]), float(center_[2])};
   at::Tensor g_means = at::zeros({n, 3}, means3d.options()), g_sh = at::empty({n, K, C}, means3d.options());
   const float *M3 = means3d.data_ptr<float>(), *SH = sh.data_ptr<float>(), *G = g_col.data_ptr<float>();
   float *OM = g_means.data_ptr<float>(), *OS = g_sh.data_ptr<float>();
