@@ -83,7 +83,7 @@ def pattern_scene(name: str, width: int = 128, height: int | None = None) -> Sce
 
 
 def write_targets(out_dir: str | Path, width: int = 256) -> list[Path]:
-    """Save the three targets as PNGs (for the README); returns the paths."""
+    """Save the three targets as PNGs (docs/results/table1.md shows them); returns the paths."""
     from PIL import Image
 
     out = Path(out_dir)
