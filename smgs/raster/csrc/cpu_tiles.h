@@ -147,6 +147,7 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
   }
   const VF kmaxf(float(sc.kmax));
   const bool need_head = SOFT || R > 0;
+  const bool patch = sc.patch;   // a local: stores through the outputs cannot make it reload
   int64_t pairs = 0;
   for (int i = 0; i < n; ++i) {
     const float* s = rows + size_t(lst[i]) * Sp;
@@ -181,15 +182,17 @@ static int64_t fwd_block(const Scene& sc, const float* rows, int Sp, const int32
       const VF T0 = T[v] * (VF(1.f) - a);
       // the softmax head: the lane's first k_max composited splats, or (patch scope) the tile's
       // first k_max list entries (lst[i] is the tile-list position; exact as a float below 2^24,
-      // where k_max is capped)
-      const VM in_head = (sc.patch ? VF(float(lst[i])) : cnt[v]) < kmaxf;
+      // where k_max is capped). Evaluated only where it is read, so the modes without a head
+      // (3dgs and gef_only without the regulariser) keep the loop they had before the scope existed
+      // (computed up front it made their forward ~20 % slower, bench/ab.py).
+      const auto in_head = [&] { return (patch ? VF(float(lst[i])) : cnt[v]) < kmaxf; };
       // 3DGS: not composited, the pixel is done. Only where the step is vanilla: inside the softmax
       // head a later splat can take the pixel from those before it (constants.T_MIN).
       VM stop = mand(reach[v], T0 < VF(sc.tstop));
-      if (SOFT) stop = mand(stop, mnot(in_head));
+      if (SOFT) stop = mand(stop, mnot(in_head()));
       done[v] = mor(done[v], stop);
       const VM rv = mand(reach[v], mnot(stop));
-      const VM head = need_head ? mand(rv, in_head) : rv;
+      const VM head = need_head ? mand(rv, in_head()) : rv;
       if (SOFT) {
         const VM soft = mand(head, A[v] > VF(0.f));
         const VF p = -k[v].q;
