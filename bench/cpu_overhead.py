@@ -186,7 +186,9 @@ def main(argv=None) -> int:
     p, cam = to_inputs(load_scene(args.scene))
     import os
 
-    print(f"cpu {os.popen('lscpu').read().split('Model name:')[1].splitlines()[0].strip()}, isa {select_isa()}, "
+    from smgs.env import cpu_model
+
+    print(f"cpu {cpu_model()}, isa {select_isa()}, "
           f"{torch.get_num_threads()} threads, load {os.getloadavg()[0]:.1f}")
     if args.blocks:
         print("| scene | mode | kernel alone CPU / wall ms | rasterize CPU / wall ms | ratio CPU | ratio wall |")

@@ -98,7 +98,9 @@ class CollapseWatch:
 
     def _cause(self, final: int, shrunk: bool, plan: list[str], grad_threshold: float | None) -> str:
         t = self.totals
-        random_init = any("random points" in line for line in plan)
+        from smgs.train.trainer import RANDOM_INIT_PLAN
+
+        random_init = any(RANDOM_INIT_PLAN in line for line in plan)
         grown = t["cloned"] + t["split"] + t["added"]
         if not shrunk:
             return ("the model does not cover those views (its Gaussians are outside their frusta or transparent "

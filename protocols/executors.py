@@ -24,8 +24,10 @@ KINDS = ("sequential", "local", "slurm", "submitit_local")
 def _died(payload: Payload, err: BaseException | str) -> Summary:
     msg = err if isinstance(err, str) else f"{type(err).__name__}: {err}"
     out = {"key": payload.get("key"), "status": "failed", "error": f"worker died: {msg}"}
-    log = os.path.join(str(payload.get("run_dir", "")), "log.txt")
-    if payload.get("run_dir") and os.path.isfile(log):   # what the cell logged before its worker died
+    from protocols.cell import LOG   # here: the runner's start does not import the cell (torch)
+
+    log = os.path.join(str(payload["run_dir"]), LOG) if payload.get("run_dir") else None
+    if log and os.path.isfile(log):   # what the cell logged before its worker died
         out["log"] = log
     return out
 

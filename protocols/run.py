@@ -281,7 +281,7 @@ def main(cfg: DictConfig) -> None:
 
     try:
         summaries = _run(cfg, list(HydraConfig.get().overrides.task))
-    except ReportFailed as e:   # the runs are recorded; the builder has printed its own error
+    except ReportFailed as e:   # the runs are recorded; the builder's error is in the message
         print(f"error: {e}", file=sys.stderr, flush=True)
         raise SystemExit(1) from None
     message = failure_message(summaries)

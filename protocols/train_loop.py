@@ -202,13 +202,12 @@ def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
 
 def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
           cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger,
-          neighbours: NeighbourLog | None = None, watch: CollapseWatch | None = None) -> list[CurvePoint]:
+          neighbours: NeighbourLog | None, watch: CollapseWatch) -> list[CurvePoint]:
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps (the error-against-time curve, returned) and a
     checkpoint every ``checkpoint_every`` steps, both outside the train clock. ``neighbours``
     counts the cells running on this machine every 10 steps; ``watch`` follows the Gaussian count
     (``protocols.collapse``; its history is kept in the checkpoints)."""
-    watch = watch or CollapseWatch.start(method.num_gaussians())
     progress = _load_checkpoint(run_dir, method, config_hash, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     if progress.get("collapse_watch"):

@@ -248,7 +248,11 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     the previous report as it was, never new tables beside an old report.md. Files of the old
     folder that the report does not write (the user's own) are carried over; those of our own that
     the previous build listed in its manifest and this one does not produce are not."""
-    out = out.resolve() if out.is_symlink() else out
+    out = out.resolve()   # also "." and symlinks: the folder itself is swapped, beside it in its parent
+    if out.is_dir() and not ((out / MANIFEST).exists() or (out / REPORT).exists()) and any(out.iterdir()):
+        # the swap would walk and relink a folder that is not a report's (a runs folder, a home)
+        raise FileExistsError(f"{out} holds files and is not a report folder (no {REPORT}); give --out a new "
+                              "or empty folder, or the report folder of an earlier build")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
     try:

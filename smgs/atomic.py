@@ -90,7 +90,11 @@ def replace_dir(new: Path | str, target: Path | str) -> None:
         shutil.rmtree(new, ignore_errors=True)   # now holds the old content
         return
     aside = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.old-"))
-    os.rename(target, aside / target.name)
+    try:
+        os.rename(target, aside / target.name)
+    except OSError:
+        aside.rmdir()   # nothing was moved: leave no empty folder behind
+        raise
     os.rename(new, target)
     shutil.rmtree(aside, ignore_errors=True)
 

@@ -20,8 +20,10 @@ def bench_dir() -> Path:
 
 
 def benchmarks() -> list[str]:
-    """The benchmark scripts of the checkout's bench/ (none where it is not there)."""
-    return sorted(p.stem for p in bench_dir().glob("*.py") if not p.stem.startswith("_"))
+    """The benchmark scripts of the checkout's bench/ (none where it is not there): the modules that
+    run as a script, not the helpers they import (gpu_stages, gpu_report)."""
+    return sorted(p.stem for p in bench_dir().glob("*.py")
+                  if not p.stem.startswith("_") and 'if __name__ == "__main__"' in p.read_text())
 
 
 def run_bench(args: list[str]) -> int:
@@ -43,8 +45,11 @@ def run_bench(args: list[str]) -> int:
     sys.path.insert(0, str(script.parent.parent))   # as `python -m bench.NAME` from the checkout
     try:
         runpy.run_module(f"bench.{name}", run_name="__main__", alter_sys=True)
-    except SystemExit as e:  # the benchmarks end with sys.exit(main())
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    except SystemExit as e:  # the benchmarks end with sys.exit(main()) or SystemExit("why")
+        if e.code is None or isinstance(e.code, int):
+            return e.code or 0
+        print(e.code, file=sys.stderr)   # as Python prints it for `python -m bench.NAME`
+        return 1
     finally:
         sys.argv, sys.path[:] = saved[0], saved[1]
     return 0

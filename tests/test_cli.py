@@ -108,6 +108,14 @@ def test_bench_runs_a_benchmark_of_the_checkout(tmp_path, capsys):
     assert main(["bench"]) == 2
     listed = capsys.readouterr().out.split("benchmarks: ")[1].split(", ")
     assert {"raster", "train", "ply"} <= {n.strip() for n in listed}
+    assert not {"gpu_stages", "gpu_report"} & {n.strip() for n in listed}   # modules the GPU check imports
+
+
+def test_a_benchmark_that_stops_with_a_message_prints_it(capsys):
+    """bench/raster.py stops on an unknown scene with SystemExit(message): `smgs bench` prints the
+    message (as `python -m bench.raster` does) and returns 1."""
+    assert main(["bench", "raster", "--scenes", "no_such_scene", "--backends", "reference", "--repeats", "1"]) == 1
+    assert "no_such_scene" in capsys.readouterr().err
 
 
 def test_popping_writes_its_tables(tmp_path):

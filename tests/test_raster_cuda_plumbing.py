@@ -115,19 +115,24 @@ def test_wrapper_plumbing_matches_the_reference(mode, n_ch, n_reg, eq15, scope):
     assert (gw["alpha"] is None) == (not use_gef) and (gw["beta"] is None) == (not use_soft)
 
 
+@pytest.mark.parametrize("kernels", ["default", "v2"])
 @pytest.mark.parametrize("mode", MODES)
-def test_wrapper_with_no_splats_renders_the_background_without_calling_the_kernel(mode):
+def test_wrapper_with_no_splats_renders_the_background_without_calling_the_kernel(mode, kernels):
     """A view with nothing in it (a collapsed model): the kernels read the regulariser's channel
-    count from a non-empty reg_values only, so the wrapper answers N = 0 itself, with the
-    documented shapes and zero gradients, and never calls the extension."""
+    count from a non-empty reg_values only, so the wrapper (of the default and of the opt-in
+    kernels) answers N = 0 itself, with the documented shapes and zero gradients, and never calls
+    the extension."""
+    from smgs.raster import cuda_v2
+
+    wrapper = cuda_backend if kernels == "default" else cuda_v2
     ext = StandInExtension()
     z = lambda *s: torch.zeros(*s, requires_grad=True)  # noqa: E731
     ins = dict(means2d=z(0, 2), conics=z(0, 3), opacities=z(0), colors=z(0, 3), depths=z(0), alpha=z(0),
                beta=z(0), gamma=z(0))
     rv = z(0, 2)
     bg = torch.tensor([0.2, 0.5, 0.7], requires_grad=True)
-    out = cuda_backend.composite(ext, Splats2D(*ins.values(), background=bg, reg_values=rv),
-                                 composite_settings(21, 17, mode, 3))
+    out = wrapper.composite(ext, Splats2D(*ins.values(), background=bg, reg_values=rv),
+                            composite_settings(21, 17, mode, 3))
     assert ext.calls == []
     assert torch.equal(out.rgb, bg.detach().expand(17, 21, 3)) and not out.alpha.any() and not out.depth.any()
     assert out.reg.shape == (17, 21, 5) and not out.reg.any() and out.stats.pairs_evaluated == 0

@@ -133,13 +133,10 @@ def test_v2_applies_only_where_the_cuda_backend_renders(monkeypatch):
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("sorted_per_pixel,leaders,scope", [(True, False, "pixel"), (True, True, "patch"),
                                                              (False, True, "pixel")])
-def test_per_pixel_plumbing_matches_the_cpu_window(mode, sorted_per_pixel, leaders, scope):
+def test_per_pixel_plumbing_matches_the_cpu_window(mode, sorted_per_pixel, leaders, scope, cpu_backend):
     """The per-pixel entries (cuda_pixel.cu) through a stand-in computing with the CPU window: the
-    wrapper's images, leaders and gradients equal the CPU backend's own per-pixel path."""
-    from smgs.raster import cpu
-
-    if not cpu.is_available():
-        pytest.skip(f"cpu backend unavailable: {cpu.unavailable_reason()}")
+    wrapper's images, leaders and gradients equal the CPU backend's own per-pixel path (the compiled
+    CPU renderer: conftest's ``cpu_backend``, which names why where it cannot be built)."""
     from smgs.raster.ray_depth import ray_depth
 
     cam = Camera.look_at([0.1, -0.1, -2.0], [0.0, 0.0, 3.0], [0, -1, 0], fx=40.0, fy=38.0, width=23, height=19)
@@ -184,3 +181,17 @@ def test_per_pixel_plumbing_matches_the_cpu_window(mode, sorted_per_pixel, leade
             assert got is None or (got == 0).all(), k
         else:
             torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-7, msg=k)
+
+
+def test_per_pixel_order_on_the_cuda_kernels_with_reg_values_is_refused_naming_them():
+    """The per-pixel order has no regulariser sums: asked of the cuda backend with reg_values (and the
+    opt-in kernels, which have the order), the error names reg_values, before any extension loads."""
+    from smgs.raster import rasterize_splats
+    from smgs.raster.types import RayDepth
+
+    n = 3
+    z = lambda *s: torch.rand(*s)  # noqa: E731
+    rd = RayDepth(coefs=torch.zeros(n, 9), fx=10.0, fy=10.0, cx=5.0, cy=5.0)
+    with pytest.raises(ValueError, match="per_pixel' on the CUDA kernels takes no reg_values"):
+        rasterize_splats(z(n, 2) * 8, torch.tensor([[1.0, 0.0, 1.0]] * n), z(n) * 0.5, z(n, 3), z(n) + 1, z(n), z(n),
+                         z(n), 8, 8, mode="3dgs", backend="cuda", cuda_kernels="v2", ray_depth=rd, reg_values=z(n, 2))

@@ -215,6 +215,25 @@ def test_rebuild_replaces_and_drops_stale_files(tmp_path):
     assert "not computed: not wanted here" in md
 
 
+def test_out_is_a_report_folder_a_new_one_or_dot(tmp_path, monkeypatch):
+    """The report is swapped in as a whole folder: ``--out`` naming a folder of other files (not a
+    report's) is refused with the fix and left as it was; ``--out .`` (the current folder, empty)
+    is written in place of itself."""
+    root = make_tree(tmp_path / "runs")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    with pytest.raises(FileExistsError, match="is not a report folder .*give --out a new or empty folder"):
+        build_report(root, mine, stability="not wanted here")
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"] and (mine / "notes.txt").read_text() == "keep"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # no temporary folder left
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    build_report(root, Path("."), stability="not wanted here")
+    assert (here / "report.md").exists() and (here / "tables" / "table1_patterns.csv").exists()
+
+
 def test_pareto_figures_split_not_truncated():
     from reports.plots import Point, pareto_plots
     from reports.runs import Value

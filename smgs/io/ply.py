@@ -159,7 +159,8 @@ def read_ply(path: Path | str) -> PlySplats:
         raise PlyFormatError(path, "no such file", "a .ply file written by 3DGS, gsplat, nerfstudio or smgs")
     if path.stat().st_size == 0:
         raise PlyFormatError(path, "empty file (0 bytes)", "a PLY header starting with 'ply'")
-    _check_sizes(path, _header(path))   # before plyfile allocates what the header claims
+    header = _header(path)
+    _check_sizes(path, header)   # before plyfile allocates what the header claims
     try:
         ply = plyfile.PlyData.read(str(path))   # memory-mapped: its non-mmap path reads row by row
     except (plyfile.PlyHeaderParseError, UnicodeDecodeError) as e:
@@ -167,7 +168,7 @@ def read_ply(path: Path | str) -> PlySplats:
                              "'ply', 'format binary_little_endian 1.0', 'element vertex N', properties, "
                              "'end_header' as ASCII text") from e
     except plyfile.PlyElementParseError as e:
-        raise PlyFormatError(path, f"truncated or corrupt data ({e}){_size_note(path)}",
+        raise PlyFormatError(path, f"truncated or corrupt data ({e}){_size_note(header)}",
                              "as many rows as the header's 'element vertex N' declares") from e
     if "vertex" not in ply:
         raise PlyFormatError(path, f"no 'vertex' element (elements: {[el.name for el in ply.elements]})",
@@ -381,10 +382,9 @@ def _check_sizes(path: Path, h: _Header | None) -> None:
                              "the rest would be ignored", "an 'element' count that covers the file's data")
 
 
-def _size_note(path: Path) -> str:
-    """For a binary file with one scalar element: how many bytes the header asks for and how many
-    there are (plyfile has already rejected the data)."""
-    h = _header(path)
+def _size_note(h: "_Header | None") -> str:
+    """For a binary file with one scalar element (``h``, its parsed header): how many bytes the
+    header asks for and how many there are (plyfile has already rejected the data)."""
     row = h.simple_row() if h is not None else None
     if row is None:
         return ""

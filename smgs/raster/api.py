@@ -186,10 +186,11 @@ def rasterize_splats(
     splats by the depth along its ray where the 3D response peaks, instead of all by ``depths``:
     exactly on the reference backend, through a re-sorting window of ``constants.SORT_WINDOW``
     splats on the cpu backend (no ``reg_values``; ``auto`` picks it wherever it applies, on CUDA
-    tensors through differentiable host copies), not on cuda. ``leaders``: the output's ``leaders``
+    tensors through differentiable host copies), not on the default cuda kernels (the opt-in v2 ones
+    below). ``leaders``: the output's ``leaders``
     map too (``RenderOutput``; for the view-consistency metric): the cpu backend renders it through
-    its per-pixel kernel (no ``reg_values``); cuda has no such kernel, so there the splats are
-    composited on host copies (cpu, else reference) and the outputs moved back. ``k_max_scope``:
+    its per-pixel kernel (no ``reg_values``); the default cuda kernels have none, so there the splats
+    are composited on host copies (cpu, else reference) and the outputs moved back. ``k_max_scope``:
     what the softmax head is (docs/kmax-scope.md): ``"pixel"``, each pixel's first k_max composited
     splats; ``"patch"``, the splats at positions < k_max of its 16x16 tile's depth-sorted list.
     ``cuda_kernels``: which CUDA kernels composite where the cuda backend does (``"default"``, or the
@@ -218,6 +219,9 @@ def _composite(splats: Splats2D, st: CompositeSettings, backend: str, kernels: s
         if backend == "cuda" and kernels != "v2":
             raise ValueError("sort='per_pixel' has no CUDA kernel among the default ones; use the opt-in kernels "
                              "(cuda_kernels='v2', docs/cuda.md), backend='reference' or 'auto'")
+        if backend == "cuda" and splats.reg_values is not None:
+            raise ValueError("sort='per_pixel' on the CUDA kernels takes no reg_values (the per-pixel order has no "
+                             "regulariser sums); drop reg_values, or use backend='reference'")
     # the opt-in kernels order each pixel (and give the leading-splat map) on the GPU itself
     pixel_on_gpu = (kernels == "v2" and (ray_depth is not None or st.leaders) and splats.reg_values is None
                     and backend in ("auto", "cuda")

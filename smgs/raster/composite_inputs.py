@@ -5,7 +5,6 @@ A backend is ``fn(splats, settings) -> RenderOutput``; the flat argument list is
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -45,9 +44,6 @@ class Splats2D:
         gradients)."""
         return (self.means2d, self.conics, self.opacities, self.colors, self.depths, self.alpha, self.beta,
                 self.gamma)
-
-    def replace(self, **changes) -> Splats2D:
-        return dataclasses.replace(self, **changes)
 
     def mapped(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> Splats2D:
         """``fn`` applied to every tensor (None stays None; the ray-depth coefficients detached)."""

@@ -24,14 +24,12 @@ from smgs.raster import cuda
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
 from smgs.raster.jit import JitExtension
 from smgs.raster.composite_inputs import CompositeSettings, Splats2D
-from smgs.raster.kernel_args import kernel_grads, kernel_inputs, kernel_output
+from smgs.raster.kernel_args import kernel_grads, kernel_inputs, kernel_output, no_splats
 from smgs.raster.types import RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
 # cuda_kernel.cu brings the default backend's binning (prepare, prefix sum, keys, sort, ranges)
 SOURCES = ("cuda_v2_binding.cpp", "cuda_kernel.cu", "cuda_v2_kernel.cu", "cuda_pixel.cu")
-HEADERS = ("cuda_common.cuh", "cuda_kernel.h", "cuda_v2_kernel.h", "cuda_pixel.h", "packed_row.h", "pixel_step_bwd.h",
-           "splat_math.h")
 # FMA contraction on (nvcc's default); the reach arithmetic is written with mul_rn/add_rn, which are
 # never fused (splat_math.h), so the decisions stay the other backends'.
 CUDA_CFLAGS = ["-O3", "--fmad=true"]
@@ -107,6 +105,8 @@ def composite(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     """The v2 compositing with the extension passed in (the CPU plumbing test passes a stand-in);
     ``splats.radii`` [N,2] (optional): rows with radii (0, 0) are not splats (the fused
     projection's culled Gaussians)."""
+    if splats.n == 0:   # nothing to composite (kernel_args.no_splats, as the default kernels' wrapper)
+        return no_splats(splats, st)
     args = kernel_inputs(splats, st)
     r = None if splats.radii is None else splats.radii.detach().contiguous()
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDAv2.apply(*args, r, st, ext)

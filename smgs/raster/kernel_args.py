@@ -57,7 +57,7 @@ def kernel_output(st: CompositeSettings, rgb: torch.Tensor, alpha: torch.Tensor,
     """The RenderOutput of a kernel's outputs (``reg`` None where no values were regularised,
     ``leaders`` None where the map was not asked for; ``list_end`` is kept in patch scope only)."""
     stats = RenderStats(n_contrib=n_contrib, pairs_evaluated=pairs,   # converted when read (RenderStats)
-                        k_max=st.k_max if st.use_softmax else 2**31 - 1, scope="patch" if st.patch else "pixel",
+                        k_max=st.k_max if st.use_softmax else 2**31 - 1, scope=st.scope,
                         list_end=list_end if st.patch else None)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats, reg=reg,
                         leaders=None if leaders is None else leaders.long())

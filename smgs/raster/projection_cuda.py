@@ -31,7 +31,6 @@ from smgs.raster.projection import host_view
 
 _CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("projection_cuda_binding.cpp", "projection_cuda.cu")
-HEADERS = ("projection_cuda.h", "projection_math.h")
 # As the CPU projection's -ffp-contract=off: no FMA contraction, IEEE division and square root, so
 # the CUDA and the CPU build of projection_math.h agree bit for bit.
 CUDA_CFLAGS = ["-O3", "--fmad=false"]

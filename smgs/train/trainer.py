@@ -33,6 +33,9 @@ from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
 
 log = logging.getLogger(__name__)
 
+RANDOM_INIT_PLAN = "random points (no SfM)"
+"""The plan line's words for a random initialisation (protocols.collapse reads them for a cause)."""
+
 
 class NonFiniteError(FloatingPointError):
     """A loss or parameter became NaN/inf; ``group`` names the parameter group (or "loss")."""
@@ -146,7 +149,7 @@ class Trainer:
             pts = (torch.rand(n, 3, generator=self.gen, dtype=torch.float64, device=dev) - 0.5) \
                 * gc.random_extent * self.extent
             cols = torch.rand(n, 3, generator=self.gen, device=dev)
-            self.plan.append(f"init: {n} random points (no SfM)")
+            self.plan.append(f"init: {n} {RANDOM_INIT_PLAN}")
             return Gaussians.from_points(pts.float(), cols, gc, self.extent, self.max_sh_degree, device=dev)
         raise ValueError(f"unknown init {gc.init!r}; expected auto, sfm, flat or random")
 
