@@ -28,7 +28,6 @@ import json
 import math
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -166,27 +165,6 @@ def worker(tree: str) -> None:
         print(json.dumps(ans), file=answers, flush=True)
 
 
-class Worker:
-    def __init__(self, tree: Path) -> None:
-        env = dict(os.environ)
-        env.pop("PYTHONPATH", None)   # the tree's own smgs, not the caller's
-        self.tree = tree
-        self.proc = subprocess.Popen([sys.executable, str(HERE), "--worker", str(tree)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, env=env, cwd=tree)
-
-    def call(self, **req) -> dict:
-        self.proc.stdin.write(json.dumps(req) + "\n")
-        self.proc.stdin.flush()
-        line = self.proc.stdout.readline()
-        if not line:
-            raise SystemExit(f"train_step: the worker of {self.tree} stopped (its error is above)")
-        return json.loads(line)
-
-    def close(self) -> None:
-        self.proc.stdin.close()
-        self.proc.wait()
-
-
 def load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
@@ -202,7 +180,10 @@ def ab(before: Path, after: Path, overrides: list[str], start: int, chunks: int,
     for name, tree in trees.items():
         if not (tree / "smgs" / "train").is_dir():
             raise SystemExit(f"train_step: --{name} {tree} is not an smgs source tree (no smgs/train there)")
-    workers = {k: Worker(t) for k, t in trees.items()}
+    sys.path.insert(0, str(HERE.parent))
+    from ab import Worker   # bench/ab.py's worker process, serving this script
+
+    workers = {k: Worker(t, script=HERE) for k, t in trees.items()}
     print(f"# before: {trees['before']}\n# after: {trees['after']}\n# {' '.join(overrides)}; "
           f"{start} steps first, then {chunks} rounds of {chunk} steps per tree (the first of each untimed)")
     print(f"# load average at the start: {load()}")
