@@ -1,0 +1,264 @@
+"""``smgs download`` against a server on 127.0.0.1 serving tiny archives in the real layout (the
+scenes' real registered image counts, JPEG images, binary COLMAP models): a whole download, an
+interruption then a resume with HTTP Range, a corrupt archive, a 404, a full disk, no network,
+--from-file, and the manifest's checks on a later run. Nothing reaches outside the machine."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import zipfile
+from collections import namedtuple
+from pathlib import Path
+
+import pytest
+
+from download_server import Server, scene_files, tandt_db_zip, zip_bytes
+from smgs.data.download import (MANIFEST, ArchiveError, DiskSpaceError, DownloadError, DownloadRequest,
+                                NetworkError, RemoteChangedError, download)
+from smgs.data.download import unpack
+from smgs.data.download.get import STAGING
+
+pytest.importorskip("pycolmap")
+
+MIP_FOLDERS = ("images", "images_2", "images_4", "images_8")
+
+
+@pytest.fixture(scope="module")
+def tandt_db() -> bytes:
+    return tandt_db_zip()
+
+
+def _get(root: Path, server_url: str, *datasets: str, scenes: tuple[str, ...] = (), **kw):
+    lines: list[str] = []
+    req = DownloadRequest(datasets=datasets, root=root, scenes=scenes, mirror=server_url, progress=False, **kw)
+    return download(req, log=lines.append), lines
+
+
+def _closed_port_url() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"http://127.0.0.1:{s.getsockname()[1]}"   # nobody listens once the socket closes
+
+
+def _leftovers(root: Path) -> list[str]:
+    """Names a failed run must not leave: scene folders, temporary folders."""
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*")
+                  if p.is_dir() and (p.name.startswith(".") and "partial" in p.name or p.name in ("train", "truck")))
+
+
+def test_a_whole_download_unpacks_the_layout_and_records_the_manifest(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        result, lines = _get(root, srv.url, "tandt", "deepblending")
+    assert result.unpacked == ["tandt/train", "tandt/truck", "deepblending/drjohnson", "deepblending/playroom"]
+    assert len(srv.requests) == 1, "one archive serves both datasets: fetched once"
+    for folder, scene, n in (("tandt", "train", 301), ("tandt", "truck", 251), ("db", "drjohnson", 263),
+                             ("db", "playroom", 225)):
+        assert len(list((root / folder / scene / "images").iterdir())) == n
+        assert (root / folder / scene / "sparse" / "0" / "images.bin").is_file()
+    assert not (root / STAGING).exists(), "the archive is removed after unpacking"
+    manifest = json.loads((root / MANIFEST).read_text())
+    entry = manifest["archives"]["tandt_db.zip"]
+    import hashlib
+    assert entry["size"] == len(tandt_db) and entry["sha256"] == hashlib.sha256(tandt_db).hexdigest()
+    assert entry["url"].endswith("/tandt_db.zip") and entry["date"]
+    assert manifest["scenes"]["tandt/train"]["images"] == 301
+    assert any("tandt/train: 301 registered images" in line for line in lines)
+    # The harness loads what was unpacked.
+    from smgs.data import load_scene
+    s = load_scene("tandt", scene="train", data_root=root, rule="3dgs")
+    assert len(s.train) + len(s.test) == 301
+
+
+def test_present_scenes_are_skipped_without_the_network_and_force_fetches_again(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        _get(root, srv.url, "tandt", scenes=("train",))
+    result, lines = _get(root, _closed_port_url(), "tandt", scenes=("train",))
+    assert result.present == ["tandt/train"] and result.unpacked == []
+    assert "present and complete, skipped: tandt/train" in lines[0]
+    marker = root / "tandt" / "train" / "mine.txt"
+    marker.write_text("x")
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        result, _ = _get(root, srv.url, "tandt", scenes=("train",), force=True)
+    assert result.unpacked == ["tandt/train"] and not marker.exists()
+
+
+def test_an_incomplete_scene_is_refused_before_anything_is_fetched(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        _get(root, srv.url, "tandt", scenes=("truck",))
+        victim = sorted((root / "tandt" / "truck" / "images").iterdir())[7]
+        victim.unlink()
+        with pytest.raises(DownloadError, match=rf"truck exists but is incomplete: .*lacks 1 of the 251 .*{victim.name}"
+                                                r".*--force"):
+            _get(root, srv.url, "tandt", scenes=("truck",))
+        assert len(srv.requests) == 1
+
+
+def test_an_interrupted_download_resumes_with_a_range_request(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    cut = len(tandt_db) // 3
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        srv.cut_after["tandt_db.zip"] = cut
+        with pytest.raises(NetworkError, match=rf"ended at byte {cut} of {len(tandt_db)}; rerun .* resume"):
+            _get(root, srv.url, "tandt")
+        part = root / STAGING / "tandt_db.zip.part"
+        assert part.stat().st_size == cut
+        assert not (root / "tandt").exists(), "nothing under a final name"
+        result, lines = _get(root, srv.url, "tandt")
+    assert srv.requests[1][1] == f"bytes={cut}-" and srv.requests[1][2] == srv.etag("tandt_db.zip")
+    assert result.unpacked == ["tandt/train", "tandt/truck"]
+    assert any(f"resuming at" in line for line in lines)
+    import hashlib
+    sha = json.loads((root / MANIFEST).read_text())["archives"]["tandt_db.zip"]["sha256"]
+    assert sha == hashlib.sha256(tandt_db).hexdigest()
+
+
+def test_a_resume_of_a_file_changed_at_the_server_starts_over(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        srv.cut_after["tandt_db.zip"] = 1000
+        with pytest.raises(NetworkError):
+            _get(root, srv.url, "tandt")
+        new = zip_bytes({"tandt/train/": scene_files(301), "tandt/truck/": scene_files(251)})
+        srv.files["tandt_db.zip"] = new   # another file (another ETag): the earlier 1000 bytes are useless
+        result, _ = _get(root, srv.url, "tandt")
+    assert srv.requests[1][1] == "bytes=1000-", "asked to resume"
+    assert result.unpacked == ["tandt/train", "tandt/truck"]
+    assert json.loads((root / MANIFEST).read_text())["archives"]["tandt_db.zip"]["size"] == len(new)
+
+
+def test_a_404_says_the_file_is_gone_and_how_to_fetch_it_by_hand(tmp_path):
+    root = tmp_path / "data"
+    with Server({}) as srv, pytest.raises(RemoteChangedError) as e:
+        _get(root, srv.url, "deepblending")
+    msg = str(e.value)
+    assert "/tandt_db.zip answered HTTP 404" in msg
+    assert ("https://repo-sam.inria.fr/fungraph/3d-gaussian-splatting/datasets/input/tandt_db.zip (650 MB" in msg
+            and f"--root {root} --from-file /path/to/tandt_db.zip" in msg)
+    assert not (root / "db").exists()
+
+
+def test_no_network_names_the_file_to_fetch_by_hand_and_the_command_to_give_it(tmp_path):
+    root = tmp_path / "data"
+    with pytest.raises(NetworkError) as e:
+        _get(root, _closed_port_url(), "mipnerf360", scenes=("stump", "garden"))
+    msg = str(e.value)
+    assert "cannot reach" in msg and "https://storage.googleapis.com/gresearch/refraw360/360_v2.zip" in msg
+    assert f"smgs download mipnerf360 --scenes stump,garden --root {root} --from-file /path/to/360_v2.zip" in msg
+
+
+def test_a_file_that_is_no_zip_is_refused_and_nothing_is_unpacked(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db[: len(tandt_db) // 2]}) as srv, \
+            pytest.raises(ArchiveError, match=r"tandt_db\.zip is not a valid zip archive .*delete it and rerun"):
+        _get(root, srv.url, "tandt")
+    assert _leftovers(root) == [] and not (root / MANIFEST).exists()
+
+
+def test_a_damaged_member_is_named_and_leaves_no_scene_behind(tmp_path):
+    files = scene_files(301)
+    good = zip_bytes({"tandt/train/": files, "tandt/truck/": scene_files(251)})
+    victim = "tandt/train/images/frame_00042.jpg"
+    with zipfile.ZipFile(__import__("io").BytesIO(good)) as zf:
+        info = zf.getinfo(victim)
+        at = info.header_offset + 30 + len(info.filename) + len(info.extra) + 2
+    bad = good[:at] + bytes([good[at] ^ 0xFF]) + good[at + 1:]   # the CRC no longer matches
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": bad}) as srv, pytest.raises(ArchiveError, match=rf"is corrupt: {victim}"):
+        _get(root, srv.url, "tandt")
+    assert _leftovers(root) == [] and (root / STAGING / "tandt_db.zip").is_file(), "kept for inspection"
+
+
+def test_a_scene_missing_from_the_archive_is_named(tmp_path):
+    only_train = zip_bytes({"tandt/train/": scene_files(301)})
+    with Server({"tandt_db.zip": only_train}) as srv, \
+            pytest.raises(ArchiveError, match=r"scene 'truck' is missing from tandt_db\.zip: no folder tandt/truck/"
+                                              r".*top folders are tandt/"):
+        _get(tmp_path / "data", srv.url, "tandt")
+
+
+def test_a_scene_with_the_wrong_image_count_is_refused(tmp_path):
+    short = zip_bytes({"tandt/train/": scene_files(301, registered=300), "tandt/truck/": scene_files(251)})
+    with Server({"tandt_db.zip": short}) as srv, \
+            pytest.raises(ArchiveError, match=r"'train' in tandt_db\.zip is incomplete: its COLMAP model registers 300 "
+                                              r"images where the dataset has 301"):
+        _get(tmp_path / "data", srv.url, "tandt", scenes=("train",))
+    assert _leftovers(tmp_path / "data") == []
+
+
+def test_a_full_disk_is_refused_before_the_download_with_the_size_needed(tmp_path, tandt_db, monkeypatch):
+    Usage = namedtuple("Usage", "total used free")
+    monkeypatch.setattr(unpack.shutil, "disk_usage", lambda p: Usage(10**9, 10**9 - 5000, 5000))
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv, pytest.raises(DiskSpaceError) as e:
+        _get(root, srv.url, "tandt")
+    needed = len(tandt_db) + len(tandt_db) * 2 // 4   # the archive, and half of it unpacked (2 of 4 scenes)
+    assert (f"not enough free space in {root / STAGING}: downloading tandt_db.zip and unpacking 2 of its 4 scenes "
+            f"needs {unpack.human_size(needed)}, 5.0 kB are free. Free some space, or pass --root DIR") in str(e.value)
+    assert not (root / STAGING / "tandt_db.zip.part").exists()
+
+
+def test_a_full_disk_while_writing_keeps_what_arrived_for_a_rerun(tmp_path, tandt_db, monkeypatch):
+    import errno
+
+    from smgs.data.download import fetch
+
+    real = fetch._write
+    calls = []
+
+    def filling(f, chunk, part):
+        calls.append(len(chunk))
+        if len(calls) > 1:
+            f.write = lambda b: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device"))
+        real(f, chunk, part)
+
+    monkeypatch.setattr(fetch, "CHUNK", 64 * 1024)
+    monkeypatch.setattr(fetch, "_write", filling)
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv, \
+            pytest.raises(DiskSpaceError, match=r"is full \(No space left on device\); what arrived is kept"):
+        _get(root, srv.url, "tandt")
+    assert (root / STAGING / "tandt_db.zip.part").stat().st_size == 64 * 1024
+
+
+def _mipnerf_archive() -> bytes:
+    return zip_bytes({"stump/": scene_files(125, MIP_FOLDERS), "garden/": scene_files(185, MIP_FOLDERS)})
+
+
+def test_from_file_unpacks_without_the_network_and_records_the_file(tmp_path):
+    archive = tmp_path / "hand" / "360_v2.zip"
+    archive.parent.mkdir()
+    archive.write_bytes(_mipnerf_archive())
+    root = tmp_path / "data"
+    result, _ = _get(root, _closed_port_url(), "mipnerf360", scenes=("stump",), from_file=archive)
+    assert result.unpacked == ["mipnerf360/stump"]
+    for folder in MIP_FOLDERS:
+        assert len(list((root / "mipnerf360" / "stump" / folder).iterdir())) == 125
+    entry = json.loads((root / MANIFEST).read_text())["archives"]["360_v2.zip"]
+    assert entry["from_file"] == str(archive) and entry["size"] == archive.stat().st_size
+    assert archive.is_file(), "a file given by hand is never removed"
+
+
+def test_a_later_run_refuses_an_archive_that_changed_since_the_manifest(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        _get(root, srv.url, "tandt", scenes=("train",))
+        srv.files["tandt_db.zip"] = tandt_db + b"\0" * 10
+        with pytest.raises(RemoteChangedError, match=rf"is {len(tandt_db) + 10} bytes, but tandt_db\.zip was "
+                                                     rf"{len(tandt_db)} bytes when first downloaded"):
+            _get(root, srv.url, "tandt", scenes=("truck",))
+    other = tmp_path / "tandt_db.zip"
+    other.write_bytes(zip_bytes({"tandt/truck/": scene_files(251)}).ljust(len(tandt_db), b"\0"))
+    with pytest.raises(ArchiveError, match=r"has sha256 [0-9a-f]{64}, but tandt_db\.zip had [0-9a-f]{64}"):
+        _get(root, _closed_port_url(), "tandt", scenes=("truck",), from_file=other)
+
+
+def test_unknown_names_are_refused_with_what_exists(tmp_path):
+    with pytest.raises(ValueError, match=r"unknown scene\(s\) bicycle for tandt \(tandt: train, truck\)"):
+        _get(tmp_path, _closed_port_url(), "tandt", scenes=("bicycle",))
+    with pytest.raises(ValueError, match=r"no download for dataset 'colmap'; smgs download fetches mipnerf360"):
+        _get(tmp_path, _closed_port_url(), "colmap")
