@@ -262,3 +262,58 @@ def test_unknown_names_are_refused_with_what_exists(tmp_path):
         _get(tmp_path, _closed_port_url(), "tandt", scenes=("bicycle",))
     with pytest.raises(ValueError, match=r"no download for dataset 'colmap'; smgs download fetches mipnerf360"):
         _get(tmp_path, _closed_port_url(), "colmap")
+
+
+def test_the_command_downloads_and_says_the_terms_and_where_it_put_the_data(tmp_path, tandt_db, capsys, monkeypatch):
+    from smgs_cli.main import main
+
+    monkeypatch.delenv("SMGS_DATA_ROOT", raising=False)
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        assert main(["download", "deepblending", "--scenes", "playroom", "--root", str(root), "--mirror", srv.url]) == 0
+    out = capsys.readouterr().out
+    assert "deepblending: by downloading you accept the Deep Blending authors' terms" in out
+    assert "http://visual.cs.ucl.ac.uk/pubs/deepblending/" in out
+    assert f"done: 1 scene(s) unpacked, 0 already present, under {root} (export SMGS_DATA_ROOT={root})" in out
+    assert json.loads((root / MANIFEST).read_text())["archives"]["tandt_db.zip"]["url"] == f"{srv.url}/tandt_db.zip"
+
+
+def test_the_command_takes_an_archive_by_hand_and_names_its_datasets_from_its_name(tmp_path, capsys, monkeypatch):
+    from smgs_cli.main import main
+
+    archive = tmp_path / "360_v2.zip"
+    archive.write_bytes(_mipnerf_archive())
+    monkeypatch.setenv("SMGS_DATA_ROOT", str(tmp_path / "data"))
+    assert main(["download", "--from-file", str(archive), "--scenes", "stump,garden"]) == 0
+    assert "done: 2 scene(s) unpacked" in capsys.readouterr().out
+    assert main(["download", "--from-file", str(tmp_path / "other.zip")]) == 2
+    assert "other.zip is none of the archives smgs knows (360_extra_scenes.zip, 360_v2.zip, tandt_db.zip)" in \
+        capsys.readouterr().err
+
+
+def test_the_command_without_a_root_or_with_a_failure_says_why(tmp_path, capsys, monkeypatch):
+    from smgs_cli.main import main
+
+    monkeypatch.delenv("SMGS_DATA_ROOT", raising=False)
+    assert main(["download", "tandt"]) == 2
+    assert "no data root: pass --root DIR or set $SMGS_DATA_ROOT" in capsys.readouterr().err
+    assert main(["download", "tandt", "--root", str(tmp_path), "--mirror", _closed_port_url()]) == 1
+    assert "smgs download: cannot reach" in capsys.readouterr().err
+
+
+def test_help_gives_each_dataset_its_url_size_terms_and_layout(capsys):
+    from smgs_cli.main import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["download", "--help"])
+    text = capsys.readouterr().out
+    assert e.value.code == 0
+    for url in ("https://storage.googleapis.com/gresearch/refraw360/360_v2.zip",
+                "https://repo-sam.inria.fr/fungraph/3d-gaussian-splatting/datasets/input/tandt_db.zip",
+                "https://jonbarron.info/mipnerf360/", "https://tanksandtemples.org/license/",
+                "http://visual.cs.ucl.ac.uk/pubs/deepblending/"):
+        assert url in text
+    assert "tandt_db.zip, 650 MB (the 3DGS README)" in text and "360_v2.zip, size not confirmed" in text
+    assert "layout: $ROOT/mipnerf360/<scene>/{images,images_2,images_4,images_8}/" in text
+    assert "layout: $ROOT/db/<scene>/images/ and <scene>/sparse/0/{cameras,images,points3D}.bin" in text
+    assert "--from-file" in text

@@ -104,6 +104,11 @@ def is_present(w: Wanted, root: Path, force: bool) -> bool:
     return True
 
 
+def source_url(archive: Archive, mirror: str | None) -> str:
+    """The authors' URL, or the archive's name under a mirror's base URL."""
+    return f"{mirror.rstrip('/')}/{archive.name}" if mirror else archive.url
+
+
 def manual_hint(archive: Archive, group: list[Wanted], root: Path) -> str:
     """What to do without network: which file to fetch by hand and how to hand it over."""
     datasets = " ".join(dict.fromkeys(w.dataset for w in group))
@@ -148,7 +153,7 @@ def _fetch_and_unpack(archive: Archive, group: list[Wanted], req: DownloadReques
             counts[w.key] = unpack_scene(zf, archive, w.scene, w.target, w.expected, w.folders)
             log(f"{w.key}: {counts[w.key]} registered images -> {w.target}")
     if archive.name not in manifest.archives:
-        manifest.record_archive(archive.name, archive.url, path.stat().st_size, digest,
+        manifest.record_archive(archive.name, source_url(archive, req.mirror), path.stat().st_size, digest,
                                 str(path) if req.from_file else None)
     for w in group:
         manifest.record_scene(w.key, archive.name, counts[w.key])
@@ -180,7 +185,7 @@ def _local_archive(archive: Archive, group: list[Wanted], req: DownloadRequest, 
     if final.is_file():
         log(f"using {final}, complete from an earlier run")
         return final, True
-    url = f"{req.mirror.rstrip('/')}/{archive.name}" if req.mirror else archive.url
+    url = source_url(archive, req.mirror)
     part = final.with_name(archive.name + ".part")
     part.parent.mkdir(parents=True, exist_ok=True)
     remote = open_remote(url, part, manual_hint(archive, group, root))

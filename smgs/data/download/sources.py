@@ -87,7 +87,7 @@ SOURCES: dict[str, DatasetSource] = {
     "tandt": DatasetSource(
         dataset="tandt", archives=(TANDT_DB,), image_counts={"train": 301, "truck": 251},
         image_folders=("images",),
-        terms="the Tanks and Temples licence (its page below); the archive is the 3DGS authors' COLMAP "
+        terms="the Tanks and Temples licence (its page); the archive is the 3DGS authors' COLMAP "
               "repackaging of the scenes",
         pages=("https://tanksandtemples.org/license/",
                "https://github.com/graphdeco-inria/gaussian-splatting (README: T&T+DB COLMAP)")),
