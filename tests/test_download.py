@@ -317,3 +317,32 @@ def test_help_gives_each_dataset_its_url_size_terms_and_layout(capsys):
     assert "layout: $ROOT/mipnerf360/<scene>/{images,images_2,images_4,images_8}/" in text
     assert "layout: $ROOT/db/<scene>/images/ and <scene>/sparse/0/{cameras,images,points3D}.bin" in text
     assert "--from-file" in text
+
+
+def test_an_experiment_on_missing_data_names_the_download_command(tmp_path, monkeypatch):
+    from protocols.run import run_experiment
+
+    empty = tmp_path / "data"
+    empty.mkdir()
+    args = ["+experiment=budget5", "grid.methods=[3dgs]", f"data_root={empty}", f"out_dir={tmp_path}/runs",
+            "report=false"]
+    with pytest.raises(SystemExit) as e:
+        run_experiment(args)
+    msg = str(e.value)
+    assert "on_missing=skip" in msg
+    for dataset, scene in (("mipnerf360", "bicycle"), ("tandt", "truck"), ("deepblending", "playroom")):
+        assert f"get it with: smgs download {dataset} --scenes {scene} --root {empty}" in msg
+    monkeypatch.chdir(tmp_path)   # the default data root, "data", is shown as the folder it names
+    monkeypatch.delenv("SMGS_DATA_ROOT", raising=False)
+    (tmp_path / "data").rmdir()
+    with pytest.raises(SystemExit, match=rf"get it with: smgs download tandt --scenes train --root {tmp_path}/data\n"):
+        run_experiment(args[:2] + ["grid.datasets=[tandt]"] + args[3:])
+
+
+def test_the_hint_without_a_data_root_says_to_set_one_and_is_empty_for_other_datasets(monkeypatch):
+    from protocols.cell_scene import download_hint
+
+    monkeypatch.delenv("SMGS_DATA_ROOT", raising=False)
+    assert download_hint("deepblending", "playroom", None) == (
+        "; get it with: smgs download deepblending --scenes playroom --root DIR and set SMGS_DATA_ROOT=DIR")
+    assert download_hint("colmap", "x", "/data") == ""

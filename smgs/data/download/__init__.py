@@ -11,10 +11,11 @@ interruption, checked, and unpacked into the layout configs/dataset/*.yaml read 
 
 from smgs.data.download.errors import (ArchiveError, DiskSpaceError, DownloadError, NetworkError,
                                        RemoteChangedError)
-from smgs.data.download.get import DownloadRequest, DownloadResult, datasets_of_archive, download
+from smgs.data.download.get import (DownloadRequest, DownloadResult, datasets_of_archive, download,
+                                    download_command)
 from smgs.data.download.manifest import MANIFEST
 from smgs.data.download.sources import SOURCES, Archive, DatasetSource, get_source
 
-__all__ = ["download", "DownloadRequest", "DownloadResult", "datasets_of_archive", "MANIFEST", "SOURCES",
+__all__ = ["download", "download_command", "DownloadRequest", "DownloadResult", "datasets_of_archive", "MANIFEST", "SOURCES",
            "Archive", "DatasetSource", "get_source", "DownloadError", "NetworkError", "RemoteChangedError",
            "ArchiveError", "DiskSpaceError"]

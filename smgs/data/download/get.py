@@ -109,13 +109,19 @@ def source_url(archive: Archive, mirror: str | None) -> str:
     return f"{mirror.rstrip('/')}/{archive.name}" if mirror else archive.url
 
 
+def download_command(datasets: tuple[str, ...], scenes: tuple[str, ...], root: Path | str,
+                     from_file: str | None = None) -> str:
+    """The ``smgs download`` command line that gets ``scenes`` of ``datasets`` under ``root``."""
+    return (f"smgs download {' '.join(dict.fromkeys(datasets))} --scenes {','.join(scenes)} --root {root}"
+            + (f" --from-file {from_file}" if from_file else ""))
+
+
 def manual_hint(archive: Archive, group: list[Wanted], root: Path) -> str:
     """What to do without network: which file to fetch by hand and how to hand it over."""
-    datasets = " ".join(dict.fromkeys(w.dataset for w in group))
-    scenes = ",".join(w.scene for w in group)
+    cmd = download_command(tuple(w.dataset for w in group), tuple(w.scene for w in group), root,
+                           f"/path/to/{archive.name}")
     return (f"Without network here, fetch {archive.url} ({archive.size_text}) where there is network, copy it "
-            f"to this machine and run: smgs download {datasets} --scenes {scenes} --root {root} "
-            f"--from-file /path/to/{archive.name}")
+            f"to this machine and run: {cmd}")
 
 
 def download(req: DownloadRequest, log: Callable[[str], None] = print) -> DownloadResult:
