@@ -63,18 +63,20 @@ MIPNERF360_EXTRA = Archive(
     name="360_extra_scenes.zip", url="https://storage.googleapis.com/gresearch/refraw360/360_extra_scenes.zip",
     members={s: f"{s}/" for s in ("flowers", "treehill")},
     size_text="size not confirmed by a public source", approx_bytes=None)
-# The 3DGS README: "T&T+DB COLMAP (650MB)"; the archive unpacks to tandt/<scene> and db/<scene>
-# (the 3DGS README's `train.py -s data/tandt/truck`; nvs-bench's deepblending_and_tanksandtemples.sh).
+# Its size is the one the 3DGS README gives (its link "T&T+DB COLMAP (650MB)"); the archive unpacks
+# to tandt/<scene> and db/<scene> (the 3DGS README's `train.py -s data/tandt/truck`; nvs-bench's
+# scripts/dataset_downloads/deepblending_and_tanksandtemples.sh).
 TANDT_DB = Archive(
     name="tandt_db.zip", url="https://repo-sam.inria.fr/fungraph/3d-gaussian-splatting/datasets/input/tandt_db.zip",
     members={"train": "tandt/train/", "truck": "tandt/truck/",
              "drjohnson": "db/drjohnson/", "playroom": "db/playroom/"},
     size_text="650 MB (the 3DGS README)", approx_bytes=650 * 10**6)
 
-# Registered images per scene. Sources (third-party benchmark tables, agreeing where they overlap):
-# jaesung-cs/splatstream bench/README.md (bicycle, bonsai, counter, garden, kitchen, room, truck,
-# train), a DirectXSplat benchmark table (bicycle, garden, treehill), a Mip-NeRF360 stump training
-# table (stump 125), and 3DGS evaluation notes with drjohnson 263 and playroom 225 cameras.
+# Registered images per scene, from published third-party tables that agree where they overlap:
+# jaesung-cs/splatstream's bench/README.md (bicycle 194, bonsai 292, counter 240, garden 185,
+# kitchen 279, room 311, truck 251, train 301), DirectXSplat's benchmark table (bicycle, garden,
+# treehill 141), a Mip-NeRF360 training table (stump 125) and two 3DGS evaluation write-ups
+# (drjohnson 263, playroom 225 cameras). No source found gives flowers' count.
 SOURCES: dict[str, DatasetSource] = {
     "mipnerf360": DatasetSource(
         dataset="mipnerf360", archives=(MIPNERF360_MAIN, MIPNERF360_EXTRA),
