@@ -73,4 +73,5 @@ def download_hint(dataset: str, scene: str, data_root: str | None) -> str:
         return ""
     root = data_root or os.environ.get(DATA_ROOT_ENV)
     where = Path(root).expanduser().absolute() if root else "DIR"
-    return f"; get it with: {download_command((dataset,), (scene,), where)}" + ("" if root else f" and set {DATA_ROOT_ENV}=DIR")
+    return (f"; get it with: {download_command((dataset,), (scene,), where)}"
+            + ("" if root else f" and set {DATA_ROOT_ENV}=DIR"))

@@ -36,7 +36,8 @@ def colmap_model(names: list[str], w: int = 8, h: int = 6) -> dict[str, bytes]:
     return {"cameras.bin": cams, "images.bin": imgs, "points3D.bin": pts}
 
 
-def scene_files(n_images: int, folders: tuple[str, ...] = ("images",), registered: int | None = None) -> dict[str, bytes]:
+def scene_files(n_images: int, folders: tuple[str, ...] = ("images",),
+                registered: int | None = None) -> dict[str, bytes]:
     """A scene's files by path inside it: ``n_images`` images in each folder, a model registering
     the first ``registered`` (default all) of them."""
     names = [f"frame_{i:05d}.jpg" for i in range(n_images)]

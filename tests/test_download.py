@@ -5,8 +5,9 @@ interruption then a resume with HTTP Range, a corrupt archive, a 404, a full dis
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
-import shutil
 import socket
 import zipfile
 from collections import namedtuple
@@ -61,7 +62,6 @@ def test_a_whole_download_unpacks_the_layout_and_records_the_manifest(tmp_path, 
     assert not (root / STAGING).exists(), "the archive is removed after unpacking"
     manifest = json.loads((root / MANIFEST).read_text())
     entry = manifest["archives"]["tandt_db.zip"]
-    import hashlib
     assert entry["size"] == len(tandt_db) and entry["sha256"] == hashlib.sha256(tandt_db).hexdigest()
     assert entry["url"].endswith("/tandt_db.zip") and entry["date"]
     assert manifest["scenes"]["tandt/train"]["images"] == 301
@@ -111,8 +111,7 @@ def test_an_interrupted_download_resumes_with_a_range_request(tmp_path, tandt_db
         result, lines = _get(root, srv.url, "tandt")
     assert srv.requests[1][1] == f"bytes={cut}-" and srv.requests[1][2] == srv.etag("tandt_db.zip")
     assert result.unpacked == ["tandt/train", "tandt/truck"]
-    assert any(f"resuming at" in line for line in lines)
-    import hashlib
+    assert any("resuming at" in line for line in lines)
     sha = json.loads((root / MANIFEST).read_text())["archives"]["tandt_db.zip"]["sha256"]
     assert sha == hashlib.sha256(tandt_db).hexdigest()
 
@@ -163,7 +162,7 @@ def test_a_damaged_member_is_named_and_leaves_no_scene_behind(tmp_path):
     files = scene_files(301)
     good = zip_bytes({"tandt/train/": files, "tandt/truck/": scene_files(251)})
     victim = "tandt/train/images/frame_00042.jpg"
-    with zipfile.ZipFile(__import__("io").BytesIO(good)) as zf:
+    with zipfile.ZipFile(io.BytesIO(good)) as zf:
         info = zf.getinfo(victim)
         at = info.header_offset + 30 + len(info.filename) + len(info.extra) + 2
     bad = good[:at] + bytes([good[at] ^ 0xFF]) + good[at + 1:]   # the CRC no longer matches
@@ -241,6 +240,14 @@ def test_from_file_unpacks_without_the_network_and_records_the_file(tmp_path):
     entry = json.loads((root / MANIFEST).read_text())["archives"]["360_v2.zip"]
     assert entry["from_file"] == str(archive) and entry["size"] == archive.stat().st_size
     assert archive.is_file(), "a file given by hand is never removed"
+
+
+def test_from_file_of_the_other_archive_is_refused_naming_both(tmp_path):
+    archive = tmp_path / "360_v2.zip"
+    archive.write_bytes(_mipnerf_archive())
+    with pytest.raises(DownloadError, match=r"360_v2\.zip is 360_v2\.zip, but mipnerf360/flowers come\(s\) from "
+                                            r"360_extra_scenes\.zip"):
+        _get(tmp_path / "data", _closed_port_url(), "mipnerf360", scenes=("flowers",), from_file=archive)
 
 
 def test_a_later_run_refuses_an_archive_that_changed_since_the_manifest(tmp_path, tandt_db):

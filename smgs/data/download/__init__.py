@@ -16,6 +16,7 @@ from smgs.data.download.get import (DownloadRequest, DownloadResult, datasets_of
 from smgs.data.download.manifest import MANIFEST
 from smgs.data.download.sources import SOURCES, Archive, DatasetSource, get_source
 
-__all__ = ["download", "download_command", "DownloadRequest", "DownloadResult", "datasets_of_archive", "MANIFEST", "SOURCES",
+__all__ = ["download", "download_command", "DownloadRequest", "DownloadResult", "datasets_of_archive", "MANIFEST",
+           "SOURCES",
            "Archive", "DatasetSource", "get_source", "DownloadError", "NetworkError", "RemoteChangedError",
            "ArchiveError", "DiskSpaceError"]

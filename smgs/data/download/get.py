@@ -23,6 +23,7 @@ from smgs.data.download.unpack import check_space, human_size, open_zip, remove_
 from smgs.data.scene import DatasetNotFoundError
 
 STAGING = ".smgs-download"   # under the data root: partial and complete archives, same file system
+ARCHIVE_NAMES = frozenset(a.name for src in SOURCES.values() for a in src.archives)
 
 
 @dataclass(frozen=True)
@@ -63,8 +64,8 @@ def datasets_of_archive(path: Path) -> tuple[str, ...]:
     """The datasets an archive file serves, by its name (tandt_db.zip: tandt and deepblending)."""
     found = tuple(d for d, src in SOURCES.items() if any(a.name == path.name for a in src.archives))
     if not found:
-        names = sorted({a.name for src in SOURCES.values() for a in src.archives})
-        raise ValueError(f"{path.name} is none of the archives smgs knows ({', '.join(names)}); name the "
+        known = ", ".join(sorted(ARCHIVE_NAMES))
+        raise ValueError(f"{path.name} is none of the archives smgs knows ({known}); name the "
                          "dataset it holds: smgs download DATASET --from-file FILE")
     return found
 
@@ -186,6 +187,9 @@ def _local_archive(archive: Archive, group: list[Wanted], req: DownloadRequest, 
     if req.from_file is not None:
         if not req.from_file.is_file():
             raise DownloadError(f"--from-file {req.from_file}: no such file")
+        if req.from_file.name != archive.name and req.from_file.name in ARCHIVE_NAMES:
+            raise DownloadError(f"--from-file {req.from_file} is {req.from_file.name}, but "
+                                f"{', '.join(w.key for w in group)} come(s) from {archive.name}")
         return req.from_file, False
     final = root / STAGING / archive.name
     if final.is_file():

@@ -56,8 +56,8 @@ def check_space(folder: Path, needed: int, what: str) -> None:
     """Refuse before writing anything when ``folder``'s file system has less than ``needed`` free."""
     free = shutil.disk_usage(folder).free
     if free < needed:
-        raise DiskSpaceError(f"not enough free space in {folder}: {what} needs {human_size(needed)}, {human_size(free)} are free. "
-                             "Free some space, or pass --root DIR on a larger disk")
+        raise DiskSpaceError(f"not enough free space in {folder}: {what} needs {human_size(needed)}, "
+                             f"{human_size(free)} are free. Free some space, or pass --root DIR on a larger disk")
 
 
 def human_size(n: int) -> str:
