@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
 import socket
 import zipfile
 from collections import namedtuple
@@ -31,9 +32,9 @@ def tandt_db() -> bytes:
     return tandt_db_zip()
 
 
-def _get(root: Path, server_url: str, *datasets: str, scenes: tuple[str, ...] = (), **kw):
+def _get(root: Path, server_url: str, *datasets: str, scenes: tuple[str, ...] = (), progress: bool = False, **kw):
     lines: list[str] = []
-    req = DownloadRequest(datasets=datasets, root=root, scenes=scenes, mirror=server_url, progress=False, **kw)
+    req = DownloadRequest(datasets=datasets, root=root, scenes=scenes, mirror=server_url, progress=progress, **kw)
     return download(req, log=lines.append), lines
 
 
@@ -70,6 +71,16 @@ def test_a_whole_download_unpacks_the_layout_and_records_the_manifest(tmp_path, 
     from smgs.data import load_scene
     s = load_scene("tandt", scene="train", data_root=root, rule="3dgs")
     assert len(s.train) + len(s.test) == 301
+
+
+def test_the_progress_bar_shows_bytes_rate_and_time_left(tmp_path, tandt_db, capsys):
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        _get(tmp_path / "data", srv.url, "tandt", scenes=("train",), progress=True)
+    bar = capsys.readouterr().err.replace("\r", "\n").splitlines()[-1]
+    from tqdm import tqdm
+    size = tqdm.format_sizeof(len(tandt_db), divisor=1024)   # bytes in binary prefixes
+    assert bar.startswith("tandt_db.zip: 100%") and f"{size}/{size}" in bar, bar
+    assert re.search(r"\[\d\d:\d\d<\d\d:\d\d, +[\d.]+[kMG]?B/s\]", bar), bar   # elapsed<left, rate
 
 
 def test_present_scenes_are_skipped_without_the_network_and_force_fetches_again(tmp_path, tandt_db):

@@ -77,29 +77,26 @@ TANDT_DB = Archive(
 # kitchen 279, room 311, truck 251, train 301), DirectXSplat's benchmark table (bicycle, garden,
 # treehill 141), a Mip-NeRF360 training table (stump 125) and two 3DGS evaluation write-ups
 # (drjohnson 263, playroom 225 cameras). No source found gives flowers' count.
+UNNAMED = "no licence name is confirmed here: read the page before use"
+REPACKED = "the archive is the 3DGS authors' COLMAP repackaging of the scenes"
+THREEDGS_PAGE = "https://github.com/graphdeco-inria/gaussian-splatting (README: T&T+DB COLMAP)"
+
 SOURCES: dict[str, DatasetSource] = {
     "mipnerf360": DatasetSource(
         dataset="mipnerf360", archives=(MIPNERF360_MAIN, MIPNERF360_EXTRA),
         image_counts={"bicycle": 194, "bonsai": 292, "counter": 240, "garden": 185, "kitchen": 279,
                       "room": 311, "stump": 125, "flowers": None, "treehill": 141},
         image_folders=("images", "images_2", "images_4", "images_8"),
-        terms="the Mip-NeRF 360 authors' terms on their page (no licence name is confirmed here: read "
-              "the page before use)",
+        terms=f"the Mip-NeRF 360 authors' terms on their page ({UNNAMED})",
         pages=("https://jonbarron.info/mipnerf360/",)),
     "tandt": DatasetSource(
-        dataset="tandt", archives=(TANDT_DB,), image_counts={"train": 301, "truck": 251},
-        image_folders=("images",),
-        terms="the Tanks and Temples licence (its page); the archive is the 3DGS authors' COLMAP "
-              "repackaging of the scenes",
-        pages=("https://tanksandtemples.org/license/",
-               "https://github.com/graphdeco-inria/gaussian-splatting (README: T&T+DB COLMAP)")),
+        dataset="tandt", archives=(TANDT_DB,), image_counts={"train": 301, "truck": 251}, image_folders=("images",),
+        terms=f"the Tanks and Temples licence (its page); {REPACKED}",
+        pages=("https://tanksandtemples.org/license/", THREEDGS_PAGE)),
     "deepblending": DatasetSource(
         dataset="deepblending", archives=(TANDT_DB,), image_counts={"drjohnson": 263, "playroom": 225},
-        image_folders=("images",),
-        terms="the Deep Blending authors' terms on their page (no licence name is confirmed here: read "
-              "the page before use); the archive is the 3DGS authors' COLMAP repackaging of the scenes",
-        pages=("http://visual.cs.ucl.ac.uk/pubs/deepblending/",
-               "https://github.com/graphdeco-inria/gaussian-splatting (README: T&T+DB COLMAP)")),
+        image_folders=("images",), terms=f"the Deep Blending authors' terms on their page ({UNNAMED}); {REPACKED}",
+        pages=("http://visual.cs.ucl.ac.uk/pubs/deepblending/", THREEDGS_PAGE)),
 }
 
 
