@@ -60,7 +60,7 @@ def test_a_whole_download_unpacks_the_layout_and_records_the_manifest(tmp_path, 
                              ("db", "playroom", 225)):
         assert len(list((root / folder / scene / "images").iterdir())) == n
         assert (root / folder / scene / "sparse" / "0" / "images.bin").is_file()
-    assert not (root / STAGING).exists(), "the archive is removed after unpacking"
+    assert sorted(p.name for p in (root / STAGING).iterdir()) == ["lock"], "the archive is removed after unpacking"
     manifest = json.loads((root / MANIFEST).read_text())
     entry = manifest["archives"]["tandt_db.zip"]
     assert entry["size"] == len(tandt_db) and entry["sha256"] == hashlib.sha256(tandt_db).hexdigest()
@@ -139,6 +139,18 @@ def test_a_resume_of_a_file_changed_at_the_server_starts_over(tmp_path, tandt_db
     assert srv.requests[1][1] == "bytes=1000-", "asked to resume"
     assert result.unpacked == ["tandt/train", "tandt/truck"]
     assert json.loads((root / MANIFEST).read_text())["archives"]["tandt_db.zip"]["size"] == len(new)
+
+
+def test_a_second_download_into_the_same_root_is_refused_while_one_runs(tmp_path, tandt_db):
+    from smgs.data.download.get import exclusive
+
+    root = tmp_path / "data"
+    with exclusive(root / STAGING), Server({"tandt_db.zip": tandt_db}) as srv, \
+            pytest.raises(DownloadError, match=rf"another smgs download is writing into {root} \(it holds "):
+        _get(root, srv.url, "tandt")
+    assert srv.requests == []
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        assert _get(root, srv.url, "tandt")[0].unpacked == ["tandt/train", "tandt/truck"]
 
 
 def test_a_404_says_the_file_is_gone_and_how_to_fetch_it_by_hand(tmp_path):

@@ -9,8 +9,9 @@ folder, checked and renamed into place, and the manifest records the archive and
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from smgs.data.download.sources import SOURCES, Archive, get_source
 from smgs.data.download.unpack import check_space, human_size, open_zip, remove_stale, scene_problem, unpack_scene
 from smgs.data.scene import DatasetNotFoundError
 
-STAGING = ".smgs-download"   # under the data root: partial and complete archives, same file system
+STAGING = ".smgs-download"   # under the data root (one file system): partial archives and the lock
 ARCHIVE_NAMES = frozenset(a.name for src in SOURCES.values() for a in src.archives)
 
 
@@ -143,10 +144,29 @@ def download(req: DownloadRequest, log: Callable[[str], None] = print) -> Downlo
     if req.from_file is not None and len(groups) > 1:
         raise DownloadError(f"--from-file gives one archive, but these scenes come from {', '.join(groups)}: "
                             "name the scenes of one archive with --scenes")
-    manifest = Manifest.read(root)
-    for group in groups.values():
-        result.unpacked += _fetch_and_unpack(group[0].archive, group, req, root, manifest, log)
+    if not groups:
+        return result
+    with exclusive(root / STAGING):
+        manifest = Manifest.read(root)
+        for group in groups.values():
+            result.unpacked += _fetch_and_unpack(group[0].archive, group, req, root, manifest, log)
     return result
+
+
+@contextlib.contextmanager
+def exclusive(staging: Path) -> Iterator[None]:
+    """One download at a time into a data root (two would write the same partial file and manifest).
+    The lock is the kernel's (flock): a killed run leaves nothing that blocks the next."""
+    import fcntl
+
+    staging.mkdir(parents=True, exist_ok=True)
+    with open(staging / "lock", "w") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise DownloadError(f"another smgs download is writing into {staging.parent} (it holds {f.name}); let "
+                                "it finish, or stop it and rerun") from None
+        yield
 
 
 def _fetch_and_unpack(archive: Archive, group: list[Wanted], req: DownloadRequest, root: Path,
@@ -166,7 +186,6 @@ def _fetch_and_unpack(archive: Archive, group: list[Wanted], req: DownloadReques
         manifest.record_scene(w.key, archive.name, counts[w.key])
     if downloaded and not req.keep_archive:
         path.unlink()
-        _rmdir_if_empty(path.parent)
     return [w.key for w in group]
 
 
@@ -213,10 +232,3 @@ def _local_archive(archive: Archive, group: list[Wanted], req: DownloadRequest, 
     os.replace(part, final)
     sidecar(part).unlink(missing_ok=True)
     return final, True
-
-
-def _rmdir_if_empty(folder: Path) -> None:
-    try:
-        folder.rmdir()
-    except OSError:
-        pass
