@@ -376,3 +376,28 @@ def test_the_hint_without_a_data_root_says_to_set_one_and_is_empty_for_other_dat
     assert download_hint("deepblending", "playroom", None) == (
         "; get it with: smgs download deepblending --scenes playroom --root DIR and set SMGS_DATA_ROOT=DIR")
     assert download_hint("colmap", "x", "/data") == ""
+
+
+def test_ctrl_c_keeps_what_arrived_and_the_same_command_resumes(tmp_path, tandt_db, capsys, monkeypatch):
+    from smgs.data.download import fetch
+    from smgs_cli.main import main
+
+    real, calls = fetch._write, []
+
+    def interrupted(f, chunk, part):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        real(f, chunk, part)
+
+    monkeypatch.setattr(fetch, "CHUNK", 64 * 1024)
+    monkeypatch.setattr(fetch, "_write", interrupted)
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        cmd = ["download", "tandt", "--root", str(root), "--mirror", srv.url]
+        assert main(cmd) == 130
+        assert "interrupted; what arrived is kept: rerun the same command to resume" in capsys.readouterr().err
+        assert (root / STAGING / "tandt_db.zip.part").stat().st_size == 2 * 64 * 1024
+        assert main(cmd) == 0
+    assert srv.requests[1][1] == f"bytes={2 * 64 * 1024}-"
+    assert "done: 2 scene(s) unpacked" in capsys.readouterr().out
