@@ -66,11 +66,13 @@ def tandt_db_zip() -> bytes:
 
 class Server:
     """``files``: name -> bytes, served at /<name>. ``cut_after``: name -> byte count at which the next
-    answer for it is broken off (once). ``requests`` records (path, Range, If-Range) of each GET."""
+    answer for it is broken off (once). ``failing``: names answered 503. ``requests`` records (path,
+    Range, If-Range) of each GET."""
 
     def __init__(self, files: dict[str, bytes]):
         self.files = dict(files)
         self.cut_after: dict[str, int] = {}
+        self.failing: set[str] = set()   # names answered 503 (a server failure), else 404 when absent
         self.requests: list[tuple[str, str | None, str | None]] = []
         server = self
 
@@ -93,7 +95,7 @@ class Server:
         rng, if_range = h.headers.get("Range"), h.headers.get("If-Range")
         self.requests.append((h.path, rng, if_range))
         if name not in self.files:
-            h.send_error(404, "Not Found")
+            h.send_error(503 if name in self.failing else 404)
             return
         data, start = self.files[name], 0
         m = re.fullmatch(r"bytes=(\d+)-", rng or "")
