@@ -350,7 +350,7 @@ def test_help_gives_each_dataset_its_url_size_terms_and_layout(capsys):
                 "https://jonbarron.info/mipnerf360/", "https://tanksandtemples.org/license/",
                 "http://visual.cs.ucl.ac.uk/pubs/deepblending/"):
         assert url in text
-    assert "tandt_db.zip, 650 MB (the 3DGS README)" in text and "360_v2.zip, size not confirmed" in text
+    assert "tandt_db.zip, 650 MB according to the 3DGS README" in text and "360_v2.zip, size not confirmed" in text
     assert "layout: $ROOT/mipnerf360/<scene>/{images,images_2,images_4,images_8}/" in text
     assert "layout: $ROOT/db/<scene>/images/ and <scene>/sparse/0/{cameras,images,points3D}.bin" in text
     assert "--from-file" in text
