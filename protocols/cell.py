@@ -118,6 +118,8 @@ def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: s
     if _finished(run_dir / RESULTS_FILE, h, force):
         return {"key": key, "status": "ok", "skipped": True}   # finished by the lock's last holder
     kept = _finished_result(run_dir / RESULTS_FILE)
+    if kept is not None and not force:
+        _check_same_model(kept, cfg, run_dir)
     work = run_dir if kept is None else rerun_dir(run_dir)
     if kept is not None:
         remove_leftovers(run_dir)
@@ -201,6 +203,21 @@ def _finished_result(res_path: Path) -> RunResult | None:
     except (OSError, ValueError):
         return None
     return old if old.status == "ok" else None
+
+
+def _check_same_model(kept: RunResult, cfg: dict, run_dir: Path) -> None:
+    """A cell that evaluates a PLY (``protocols.evaluate_ply``) never replaces the evaluation of
+    another file without ``force``: ``LeftAlone`` says how to keep both."""
+    old, new = (kept.source or {}).get("sha256"), (cfg.get("ply") or {}).get("sha256")
+    if not old or not new or old == new:
+        return
+    from protocols.evaluate_ply import own_budget_name
+
+    path = Path(cfg["ply"]["path"])
+    raise LeftAlone(f"{run_dir} holds the evaluation of {kept.source.get('ply')} (sha256 {old[:12]}…), another "
+                    f"file than {path} (sha256 {new[:12]}…); nothing was changed. To keep both, give this one a "
+                    f"cell of its own: budget.name={own_budget_name(path)} (its own row in the report); to "
+                    "replace that evaluation, add --force")
 
 
 class LeftAlone(RuntimeError):
