@@ -14,7 +14,7 @@ experiment's report is rebuilt, the pretrained row beside the trained ones.
 
 from __future__ import annotations
 
-import shutil
+import re
 import sys
 from pathlib import Path
 
@@ -82,29 +82,22 @@ def evaluation_config(ply: Path, overrides: list[str]) -> dict:
 
 
 def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
-    """Evaluate one PLY; returns ``run_cell``'s summary plus the run directory."""
-    from protocols.cell import result_hash, run_cell
+    """Evaluate one PLY; returns ``run_cell``'s summary plus the run directory. The cell holds one
+    file's evaluation: another file of the same scene is refused there (``protocols.cell``) unless
+    it gets a budget name of its own (``budget.name=pretrained-NAME``) or ``--force`` replaces it."""
+    from protocols.cell import run_cell
     from protocols.cell_scene import check_available
-    from protocols.results import RESULTS_FILE, read_result
-    from protocols.results import POINTER
+    from protocols.grid import check_path_names
 
     ply = Path(ply)
     cfg = evaluation_config(ply, overrides)
     missing = check_available(cfg)
     if missing:
         raise FileNotFoundError(f"missing data: {missing}")
-    cell = Cell(cfg["method"]["name"], cfg["dataset"]["name"], str(cfg["scene"]), BUDGET, int(cfg["seed"]))
+    cell = Cell(cfg["method"]["name"], cfg["dataset"]["name"], str(cfg["scene"]), str(cfg["budget"]["name"]),
+                int(cfg["seed"]))
+    check_path_names(str(cfg.get("experiment_name", "")), [cell])
     run_dir = Path(cfg["out_dir"]) / cell.key
-    res = run_dir / RESULTS_FILE
-    try:
-        done = res.is_file() and not cfg.get("force") and read_result(res).config_hash == result_hash(cfg) \
-            and read_result(res).status == "ok"
-    except ValueError:
-        done = False
-    if not done:  # a checkpoint left by another file (or an older evaluation) must not be resumed
-        (run_dir / POINTER).unlink(missing_ok=True)
-        for old in run_dir.glob("ckpt-*"):
-            shutil.rmtree(old, ignore_errors=True)
     summary = run_cell({"key": cell.key, "run_dir": str(run_dir), "config": cfg})
     summary["run_dir"] = str(run_dir)
     if cfg.get("report"):
@@ -112,6 +105,13 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
 
         summary["report"] = str(build_report(Path(cfg["out_dir"]), cfg.get("report_builder")))
     return summary
+
+
+def own_budget_name(ply: Path) -> str:
+    """A budget name for ``ply``'s own cell, from its name (its folder's for a file named like
+    every 3DGS output, ``point_cloud.ply``)."""
+    stem = ply.parent.name if ply.stem == "point_cloud" and ply.parent.name else ply.stem
+    return f"{BUDGET}-" + (re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "other")
 
 
 def main(argv: list[str] | None = None) -> int:
