@@ -18,13 +18,13 @@ from PIL import Image
 PINHOLE = 1   # COLMAP's camera model id
 
 
-def tiny_jpeg(w: int = 8, h: int = 6) -> bytes:
+def tiny_jpeg(w: int = 24, h: int = 16) -> bytes:
     buf = io.BytesIO()
     Image.new("RGB", (w, h), (90, 120, 30)).save(buf, "JPEG")
     return buf.getvalue()
 
 
-def colmap_model(names: list[str], w: int = 8, h: int = 6) -> dict[str, bytes]:
+def colmap_model(names: list[str], w: int = 24, h: int = 16) -> dict[str, bytes]:
     """cameras.bin, images.bin and points3D.bin (COLMAP's binary layout): one PINHOLE camera, each
     image registered on a circle around the origin, one point seen by none."""
     cams = struct.pack("<Q", 1) + struct.pack("<iiQQ4d", 1, PINHOLE, w, h, 10.0, 10.0, w / 2, h / 2)
