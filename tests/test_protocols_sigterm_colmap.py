@@ -5,13 +5,10 @@ line in the run's log; the runner's handler is put back after the import."""
 from __future__ import annotations
 
 import signal
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+from sigterm_run import REPO, terminate_when_training
 
-REPO = Path(__file__).resolve().parents[1]
 FERN = REPO.parent / "shared" / "data" / "fern"
 
 
@@ -20,17 +17,8 @@ def test_sigterm_on_a_fern_run_stops_cleanly(tmp_path):
     pytest.importorskip("pycolmap")
     args = ["dataset=colmap", f"dataset.path={FERN}", "grid.methods=[3dgs]", "protocol.steps=20000",
             "protocol.max_width=64", "checkpoint_every=10", "report=false", "eval.flip=false", f"out_dir={tmp_path}"]
-    p = subprocess.Popen([sys.executable, "-m", "protocols.run", *args], cwd=REPO, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    lines = []
-    for line in p.stderr:  # the first progress line: the scene is loaded (pycolmap imported), training runs
-        lines.append(line)
-        if "fern/3dgs: step" in line:
-            break
-    p.send_signal(signal.SIGTERM)
-    out, err = p.communicate(timeout=120)
-    err = "".join(lines) + err
-    assert p.returncode == 128 + signal.SIGTERM, err[-2000:]
+    code, _, err = terminate_when_training(args, "fern/3dgs: step")   # the scene is loaded: pycolmap imported
+    assert code == 128 + signal.SIGTERM, err[-2000:]
     assert "stopped by SIGTERM" in err and "*** SIGTERM" not in err and "Aborted at" not in err
     log = tmp_path / "colmap" / "fern" / "3dgs" / "full" / "seed0" / "log.txt"
     assert "interrupted; rerun to resume from the last checkpoint" in log.read_text()
