@@ -74,11 +74,14 @@ def _meant(cfg: dict) -> str:
     """For a ``dataset.path`` inside a scene (its images/ or sparse/ folder): the scene it is in."""
     from pathlib import Path
 
+    def is_scene(folder: Path) -> bool:
+        return (folder / "sparse").is_dir() or (folder / "transforms.json").is_file()
+
     path = cfg["dataset"].get("path")
-    if not path:
+    if not path or is_scene(Path(path)):
         return ""
     for up in Path(path).resolve().parents[:2]:
-        if (up / "sparse").is_dir() or (up / "transforms.json").is_file():
+        if is_scene(up):
             return f" (did you mean dataset.path={up}?)"
     return ""
 
