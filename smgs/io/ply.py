@@ -18,6 +18,10 @@ One element ``vertex``, one float32 property per value, binary little-endian, in
   extent from ``comment smgs extent <value>`` (γ is stored relative to the scene extent). A file
   without those comments is read with exp and the scene's extent (smgs's defaults).
 
+* Other tools' properties: normals and ``red green blue`` (a point cloud's preview colours) are
+  read past; Mip-Splatting's ``filter_3D`` is folded into scale and opacity as its fused export
+  does (``fold_filter_3d``); any other property (a 4D model's time and motion) is refused by name.
+
 ``comment smgs <key> <value>`` lines also carry the render settings of the model (mode, k_max,
 eq15, t_min, clamp_colors) so a model renders the same after a round trip.
 
@@ -161,7 +165,8 @@ def write_ply(path: Path | str, splats: PlySplats) -> Path:
 
 def read_ply(path: Path | str) -> PlySplats:
     """Read a 3DGS PLY: the SH degree from the number of ``f_rest_*`` properties, normals optional,
-    Softmax-GS extras recognised, other properties ignored (listed in ``meta["ignored"]``).
+    Softmax-GS extras recognised, Mip-Splatting's ``filter_3D`` folded in (``fold_filter_3d``),
+    preview colours read past (listed in ``meta["ignored"]``), any other property refused.
     Raises ``PlyFormatError`` (file, problem, expectation) for anything else."""
     path = Path(path)
     if not path.is_file():
@@ -208,19 +213,12 @@ def read_ply(path: Path | str) -> PlySplats:
                              "f_rest_0 .. f_rest_{M-1} without gaps")
     degree = _degree(path, m)
     k = (degree + 1) ** 2
-    rendered = set(base) | {f"f_rest_{i}" for i in range(m)} | (set(EXTRAS) & present) | ({FILTER_3D} & present)
-    unknown = [q for q in names if q not in rendered and q not in NOT_RENDERED]
-    if unknown:
-        raise PlyFormatError(path, f"properties smgs cannot render: {_short(unknown)} (a model that needs them, such "
-                             "as a 4D or spacetime model's time and motion, would be scored as another model)",
-                             "the 3DGS properties, with smgs's extras, Mip-Splatting's filter_3D, normals or "
-                             "red/green/blue beside them; if those properties do not change how the model renders, "
-                             "write the file without them")
+    _check_rendered(path, names, set(base) | {f"f_rest_{i}" for i in range(m)} | set(EXTRAS) | {FILTER_3D})
     # one float32 table [N, P] in one pass (any scalar type, either byte order); columns are
     # gathered by index, row by row (a strided pass per column would cost one pass per property)
     table = structured_to_unstructured(np.asarray(vertex.data), dtype=np.float32)
     where = {q: i for i, q in enumerate(names)}
-    checked = base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS if e in present] + sorted({FILTER_3D} & present)
+    checked = base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS + (FILTER_3D,) if e in present]
     _check_finite(path, _nonfinite(table[:, [where[q] for q in checked]], checked))
 
     def stack(keys: list[str]) -> np.ndarray:
@@ -244,6 +242,18 @@ def read_ply(path: Path | str) -> PlySplats:
     out.check(path)
     _check_activations(path, out)
     return out
+
+
+def _check_rendered(path: Path, names: list[str], rendered: set[str]) -> None:
+    """Every property is one smgs renders or one that does not change rendering (``NOT_RENDERED``):
+    another is refused by name, since a model scored without it is another model."""
+    unknown = [q for q in names if q not in rendered and q not in NOT_RENDERED]
+    if unknown:
+        raise PlyFormatError(path, f"properties smgs cannot render: {_short(unknown)} (a model that needs them, such "
+                             "as a 4D or spacetime model's time and motion, would be scored as another model)",
+                             "the 3DGS properties, with smgs's extras, Mip-Splatting's filter_3D, normals or "
+                             "red/green/blue beside them; if those properties do not change how the model renders, "
+                             "write the file without them")
 
 
 def fold_filter_3d(path: Path, scales: np.ndarray, opacities: np.ndarray,
