@@ -26,6 +26,7 @@ What changed from nerfbaselines, and why:
 
 from __future__ import annotations
 
+import copy
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -177,6 +178,15 @@ class ResolvedSettings(Protocol):
     def resolved_settings(cls, config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
         """What ``cls(scene, config, run=run)`` trains with, as plain data."""
         ...
+
+
+def merge_config(base: dict, over: dict) -> dict:
+    """Deep merge of nested config dicts (``over`` wins; neither input is modified): how a method's
+    settings are layered (the method's, the dataset's, the name's fixed ones)."""
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = merge_config(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,6 @@ is imported when the method is created or its class is asked for.
 
 from __future__ import annotations
 
-import copy
 import importlib
 import inspect
 import warnings
@@ -21,7 +20,7 @@ from typing import Any
 
 import torch
 
-from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, RunSettings, SceneNeeds
+from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, RunSettings, SceneNeeds, merge_config
 from smgs.data.scene import Scene
 from smgs.device import as_device
 
@@ -104,14 +103,6 @@ def method_class(name: str) -> type:
         raise TypeError(f"method {name!r} ({cls!r}) does not implement "
                         f"{', '.join('Method.' + m for m in missing)} (docs/adding-a-method.md, 'Adding a method')")
     return cls
-
-
-def merge_config(base: dict, over: dict) -> dict:
-    """Deep merge of nested config dicts (``over`` wins; neither input is modified)."""
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = merge_config(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
-    return out
 
 
 def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str, Any]:

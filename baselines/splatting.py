@@ -69,7 +69,7 @@ class GaussianSplatting:
     def from_splats(cls, scene: Scene, splats: PlySplats, config: dict[str, Any] | None = None,
                     where: str | Path = "<splats>", *, device: torch.device | str,
                     run: RunSettings | None = None) -> "GaussianSplatting":
-        from baselines.registry import merge_config
+        from baselines.method import merge_config
 
         config = train_config(config or {}, run) if run else config or {}
         cfg = from_dict(TrainConfig, merge_config(config, train_overrides(splats, where)))

@@ -6,8 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from baselines.method import RunSettings
-from baselines.registry import merge_config
+from baselines.method import RunSettings, merge_config
 from smgs.train.config import DensifyConfig, current_keys
 
 SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")

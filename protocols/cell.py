@@ -211,7 +211,7 @@ def _check_same_model(kept: RunResult, cfg: dict, run_dir: Path) -> None:
     old, new = (kept.source or {}).get("sha256"), (cfg.get("ply") or {}).get("sha256")
     if not old or not new or old == new:
         return
-    from protocols.evaluate_ply import own_budget_name
+    from protocols.grid import own_budget_name
 
     path = Path(cfg["ply"]["path"])
     raise LeftAlone(f"{run_dir} holds the evaluation of {kept.source.get('ply')} (sha256 {old[:12]}…), another "

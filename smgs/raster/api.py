@@ -18,20 +18,20 @@ from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import num_sh_bases
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats
 
-# name -> (module, function); every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
+# name -> "module:function"; every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
 # (smgs.raster.composite_inputs). Imported lazily so that listing backends never compiles or loads
 # a kernel.
-_BACKENDS: dict[str, tuple[str, str]] = {
-    "reference": ("smgs.raster.reference", "rasterize_splats_reference"),
-    "cpu": ("smgs.raster.cpu", "rasterize_splats_cpu"),
-    "cuda": ("smgs.raster.cuda", "rasterize_splats_cuda"),
+_BACKENDS: dict[str, str] = {
+    "reference": "smgs.raster.reference:rasterize_splats_reference",
+    "cpu": "smgs.raster.cpu:rasterize_splats_cpu",
+    "cuda": "smgs.raster.cuda:rasterize_splats_cuda",
 }
 
 
 def _load_backend(name: str) -> Callable[..., RenderOutput]:
     if name not in _BACKENDS:
         raise ValueError(f"unknown renderer backend {name!r}; expected 'auto' or one of {', '.join(_BACKENDS)}")
-    module, fn = _BACKENDS[name]
+    module, _, fn = _BACKENDS[name].partition(":")
     return getattr(importlib.import_module(module), fn)
 
 
