@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, RunSettings, SceneNeeds, merge_config
+from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, Resolved, RunSettings, SceneNeeds, merge_config
 from smgs.data.scene import Scene
 from smgs.device import as_device
 
@@ -115,11 +115,19 @@ def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str,
     return merge_config(config, spec.fixed)
 
 
-def resolved_settings(name: str, config: dict[str, Any] | None, run: RunSettings) -> dict[str, Any] | None:
-    """The method's complete settings for ``run`` (``ResolvedSettings``), or None for a method
-    that does not give them."""
+def resolve(name: str, config: dict[str, Any] | None = None, run: RunSettings | None = None) -> Resolved:
+    """The method's settings for ``run``, worked out once: its config with the fixed settings merged
+    (``resolve_config``) and, for a protocol run of a method that gives them, the complete settings
+    it trains with (``ResolvedSettings``)."""
+    own = resolve_config(name, config)
     fn = getattr(method_class(name), "resolved_settings", None)
-    return fn(resolve_config(name, config), run) if callable(fn) else None
+    return Resolved(name, own, run, fn(own, run) if callable(fn) and run is not None else None)
+
+
+def resolved_settings(name: str, config: dict[str, Any] | None, run: RunSettings) -> dict[str, Any] | None:
+    """The method's complete settings for ``run`` as plain data (``ResolvedSettings``), or None for
+    a method that does not give them."""
+    return resolve(name, config, run).data()
 
 
 def _takes(cls: type, keyword: str) -> bool:
@@ -130,11 +138,27 @@ def _takes(cls: type, keyword: str) -> bool:
     return any(p.name == keyword or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
+def _names(cls: type, keyword: str) -> bool:
+    """Whether the constructor names ``keyword`` itself (not only through ``**kwargs``)."""
+    try:
+        return keyword in inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None, *,
-                  device: torch.device | str, run: RunSettings | None = None) -> Method:
+                  device: torch.device | str, run: RunSettings | None = None,
+                  resolved: Resolved | None = None) -> Method:
     """Check the scene against the method's needs, then set the method up on ``device`` (a
     resolved ``torch.device``, or a setting such as "auto", "cpu", "cuda:1", resolved here:
-    ``smgs.device.as_device``) for the protocol's ``run`` (None outside a protocol run)."""
+    ``smgs.device.as_device``) for the protocol's ``run`` (None outside a protocol run).
+    ``resolved``: the settings already worked out (``resolve``), in place of ``config`` and ``run``;
+    a constructor that takes ``settings=`` gets ``resolved.settings`` and builds nothing again."""
+    if resolved is None:
+        resolved = resolve(name, config, run)
+    elif config is not None or run is not None or resolved.name != name:
+        raise ValueError(f"create_method({name!r}): give config and run, or the settings resolved for this "
+                         f"method (resolved= of {resolved.name!r}), not both")
     dev = as_device(device)
     cls = method_class(name)
     for keyword, why in (("device", "creates its tensors on that device"),
@@ -145,7 +169,8 @@ def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None,
                             f"and {why} (docs/adding-a-method.md, 'Adding a method')")
     needs: SceneNeeds = getattr(cls, "needs", SceneNeeds())
     needs.check(scene, name)
-    method = cls(scene, resolve_config(name, config), name=name, device=dev, run=run)
+    given = {"settings": resolved.settings} if resolved.settings is not None and _names(cls, "settings") else {}
+    method = cls(scene, resolved.config, name=name, device=dev, run=resolved.run, **given)
     if getattr(method, "name", None) != name:
         raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) must set `self.name` to the "
                         f"name it was created under ({name!r}), not {getattr(method, 'name', None)!r}")

@@ -83,7 +83,8 @@ def with_device(cfg: dict) -> dict:
 
 
 def run_cell(payload: dict) -> dict:
-    """payload: {"key", "run_dir", "config" (resolved dict)}. Returns a small summary."""
+    """payload: {"key", "run_dir", "config" (resolved dict), optionally "settings" (the config's
+    ``CellSettings``, made when the cell was planned)}. Returns a small summary."""
     from smgs.device import DeviceError
 
     run_dir = Path(payload["run_dir"])
@@ -91,7 +92,7 @@ def run_cell(payload: dict) -> dict:
         cfg: dict = with_device(payload["config"])
     except DeviceError as e:   # before anything is written: no half-made run directory
         return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
-    settings = cell_settings(cfg)   # the config resolved once: the hash and the method read it
+    settings = payload.get("settings") or cell_settings(cfg)   # made once: the hash and the method read it
     h = result_hash(cfg, settings)
     base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
     try:

@@ -54,10 +54,10 @@ def make_method(cfg: dict, settings: CellSettings, scene, result: RunResult, dev
     from baselines.registry import create_method
 
     name = cfg["method"]["name"]
-    method_cfg, run = settings.for_method()
+    resolved = settings.for_method()
     src = cfg.get("ply")
     if not src:
-        return create_method(name, scene, method_cfg, device=device, run=run)
+        return create_method(name, scene, device=device, resolved=resolved)
     from baselines.splatting import GaussianSplatting
 
     path = Path(src["path"])
@@ -69,7 +69,7 @@ def make_method(cfg: dict, settings: CellSettings, scene, result: RunResult, dev
     if splats.mode != name:
         raise ValueError(f"{path} holds a {splats.mode} model (extras: {sorted(splats.extras) or 'none'}), "
                          f"the run is for method {name!r}")
-    method = GaussianSplatting.from_splats(scene, splats, method_cfg, where=path, device=device, run=run)
+    method = GaussianSplatting.from_splats(scene, splats, resolved.config, where=path, device=device, run=resolved.run)
     result.source = {"kind": "pretrained", "trained_here": False, "ply": str(path.resolve()), "sha256": digest,
                      "format": splats.meta.get("format"), "sh_degree": splats.sh_degree,
                      "num_gaussians": len(splats), "written_by": "smgs" if "version" in splats.meta else "another tool",

@@ -153,9 +153,12 @@ def unknown_method(name: str, key: str) -> str:
 
 
 def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
-    """The grid's cells and their payloads (resolved configs and run directories). A grid that
+    """The grid's cells and their payloads (resolved configs, run directories and the method's
+    settings made from each config once: ``protocols.run_settings.cell_settings``). A grid that
     cannot run (an unknown method or scene, an empty list, a bad seed count or folder name) stops
     here in the one-block form, before anything runs."""
+    from protocols.run_settings import cell_settings
+
     try:
         cells = grid_cells(cfg, overrides)
         check_path_names(str(cfg.experiment_name), cells)
@@ -168,7 +171,7 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
             ccfg = _cell_config(c, overrides)
         except ValueError as e:   # ours (a budget with no file); Hydra's own errors keep their words
             raise SystemExit(f"invalid config, nothing was run: {e}") from None
-        payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg})
+        payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg, "settings": cell_settings(ccfg)})
     return cells, payloads
 
 
@@ -299,7 +302,7 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     check_devices(payloads, str(cfg.executor.kind))
     validate_payloads(payloads)
     _preflight(payloads)
-    for warning in dict.fromkeys(w for w in map(schedule_warning, (p["config"] for p in payloads)) if w):
+    for warning in dict.fromkeys(w for w in (schedule_warning(p["config"], p["settings"]) for p in payloads) if w):
         print(f"warning: {warning}", flush=True)
     ex = cfg.executor
     print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)

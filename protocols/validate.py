@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from protocols.run_settings import CellSettings, cell_settings
 from smgs.data.images import MIN_SIDE
 
 # (dotted key, kind, minimum); kind "int" or "number"; a key that is absent or null is not checked
@@ -68,8 +69,9 @@ def number_problem(key: str, value: Any, kind: str, minimum: float) -> str | Non
     return None
 
 
-def config_problems(cfg: dict) -> list[str]:
-    """Every problem of one cell's resolved config (empty when it can run)."""
+def config_problems(cfg: dict, settings: CellSettings | None = None) -> list[str]:
+    """Every problem of one cell's resolved config (empty when it can run); ``settings``: the cell's
+    (``protocols.run_settings.cell_settings``), made here when not given."""
     problems = []
     for key, kind, minimum in NUMBERS:
         value = _get(cfg, key)
@@ -98,40 +100,27 @@ def config_problems(cfg: dict) -> list[str]:
             except (ValueError, TypeError) as e:
                 problems.append(str(e))
     if not problems:
-        problems += _method_problems(cfg)
+        error = (settings if settings is not None else cell_settings(cfg)).error
+        if error is not None:   # the method's settings as the cell will make them (types, values, names)
+            problems.append(f"method {cfg['method']['name']}: {error} (keys below method.train; dataset.train and "
+                            "the budget set some too)")
     return problems
 
 
-def _method_problems(cfg: dict) -> list[str]:
-    """The method's training config, built as the cell will build it (types, values, hyperparameter-set
-    and budget names), for the methods trained by ``smgs.train``."""
-    try:
-        train_settings(cfg)
-    except (ValueError, TypeError, KeyError) as e:
-        return [f"method {cfg['method']['name']}: {e} (keys below method.train; dataset.train and the budget set "
-                "some too)"]
-    return []
+def train_settings(settings: CellSettings):
+    """The cell's ``smgs.train.TrainConfig`` (None for a method that ``smgs.train`` does not train,
+    or settings that could not be made)."""
+    from smgs.train.config import TrainConfig
 
-
-def train_settings(cfg: dict):
-    """The cell's ``smgs.train.TrainConfig`` (None for a method that ``smgs.train`` does not train)."""
-    from baselines.registry import method_class, resolve_config
-    from baselines.splatting import GaussianSplatting
-    from baselines.trainer_settings import train_config
-    from protocols.run_settings import method_settings, run_settings
-    from smgs.train.config import TrainConfig, from_dict
-
-    name = cfg["method"]["name"]
-    if not issubclass(method_class(name), GaussianSplatting):
-        return None  # another method checks its own config when it is set up
-    return from_dict(TrainConfig, train_config(resolve_config(name, method_settings(cfg)), run_settings(cfg)))
+    made = settings.method.settings if settings.method is not None else None
+    return made if isinstance(made, TrainConfig) else None
 
 
 def validate_payloads(payloads: list[dict]) -> None:
     """Stop (SystemExit naming every problem and its cells) if any cell's config cannot run."""
     found: dict[str, list[str]] = {}
     for p in payloads:
-        for problem in config_problems(p["config"]):
+        for problem in config_problems(p["config"], p.get("settings")):
             found.setdefault(problem, []).append(p["key"])
     if found:
         lines = [f"{problem} (in {len(keys)} cell(s), e.g. {keys[0]})" for problem, keys in found.items()]
@@ -144,15 +133,15 @@ each refinement decides clones and splits on the view-space gradient averaged si
 (3DGS: over 100 steps); over fewer than 10 it follows a few views' noise."""
 
 
-def schedule_warning(cfg: dict) -> str | None:
+def schedule_warning(cfg: dict, settings: CellSettings | None = None) -> str | None:
     """Why the 3DGS schedule, scaled to this cell's step count (``protocol.schedule_steps``), no longer
     does what it is for (None when it does): refinement every few steps, or opacity resets closer than
     the steps the opacities need to climb back (``reset_every`` < (logit 0.5 − logit reset_value) /
     opacity lr: 92 steps for 3DGS's values). Names the numbers and the fixes."""
-    from protocols.run_settings import run_settings
-
-    run = run_settings(cfg)
-    tc = train_settings(cfg) if run.schedule_steps and run.steps != run.schedule_steps else None
+    settings = settings if settings is not None else cell_settings(cfg)
+    run = settings.run
+    scaled = run is not None and run.schedule_steps and run.steps != run.schedule_steps
+    tc = train_settings(settings) if scaled else None
     if tc is None or not tc.densify.enabled or tc.densify.refine_start >= run.steps:
         return None
     d = tc.densify
