@@ -14,13 +14,10 @@ experiment's report is rebuilt, the pretrained row beside the trained ones.
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
-from protocols.grid import Cell
-
-BUDGET = "pretrained"
+from protocols.grid import PRETRAINED as BUDGET, Cell
 
 
 def evaluation_config(ply: Path, overrides: list[str]) -> dict:
@@ -78,13 +75,6 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
 
         summary["report"] = str(build_report(Path(cfg["out_dir"]), cfg.get("report_builder")))
     return summary
-
-
-def own_budget_name(ply: Path) -> str:
-    """A budget name for ``ply``'s own cell, from its name (its folder's for a file named like
-    every 3DGS output, ``point_cloud.ply``)."""
-    stem = ply.parent.name if ply.stem == "point_cloud" and ply.parent.name else ply.stem
-    return f"{BUDGET}-" + (re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "other")
 
 
 def main(argv: list[str] | None = None) -> int:

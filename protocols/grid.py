@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
+from pathlib import Path
+
+PRETRAINED = "pretrained"
+"""The budget of a model read from a PLY and only evaluated (``protocols.evaluate_ply``)."""
 
 
 @dataclass(frozen=True)
@@ -74,3 +79,10 @@ def check_path_names(experiment_name: str, cells: list[Cell]) -> None:
     if problems:
         raise ValueError("; ".join(problems) + " (names become folders below out_dir; set out_dir=PATH to "
                          "write elsewhere)")
+
+
+def own_budget_name(ply: Path) -> str:
+    """A budget name for ``ply``'s own cell, from its name (its folder's for a file named like
+    every 3DGS output, ``point_cloud.ply``)."""
+    stem = ply.parent.name if ply.stem == "point_cloud" and ply.parent.name else ply.stem
+    return f"{PRETRAINED}-" + (re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "other")
