@@ -287,9 +287,14 @@ def _join_reasons(gone: list[tuple[int, str]]) -> str:
     return "; ".join(f"seed {s}: {reason}" for s, reason in gone)
 
 
+LOCATIONS = ("dataset.path", "ply.path")
+"""Config keys that say where a run read its input, not what (a grid split over machines)."""
+
+
 def seed_config(r: RunResult) -> dict[str, str]:
-    """A run's config as dotted keys, without its seed and the keys that do not change a result
-    (``protocols.results.VOLATILE``); the device by its kind (``cuda:1`` is ``cuda``)."""
+    """A run's config as dotted keys, without its seed, the keys that do not change a result
+    (``protocols.results.VOLATILE``) and the input's location (``LOCATIONS``); the device by its
+    kind (``cuda:1`` is ``cuda``)."""
     flat: dict[str, str] = {}
 
     def walk(prefix: str, x) -> None:
@@ -303,6 +308,8 @@ def seed_config(r: RunResult) -> dict[str, str]:
     if isinstance(cfg.get("device"), str):
         cfg["device"] = cfg["device"].split(":")[0]
     walk("", cfg)
+    for k in LOCATIONS:
+        flat.pop(k, None)
     if r.hparams:
         flat["hparams"] = repr(r.hparams)
     return flat
