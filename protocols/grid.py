@@ -58,6 +58,10 @@ def expand(methods: list[str], datasets: dict[str, list[str]], budgets: list[str
     return cells
 
 
+NAME_MAX = 255
+"""The longest file or folder name (bytes) of Linux, macOS and Windows file systems."""
+
+
 def path_name_problem(key: str, name: str) -> str | None:
     """Why ``name`` (the value of ``key``) cannot be one folder name below the output root (None
     when it can): a name that becomes a path must not climb out of it or split into folders."""
@@ -66,6 +70,8 @@ def path_name_problem(key: str, name: str) -> str | None:
     bad = [c for c in ("/", "\\", "\0") if c in name]
     if bad:
         return f"{key}={name!r} contains {' and '.join(map(repr, bad))}: it must be one folder name"
+    if len(name.encode()) > NAME_MAX:
+        return f"{key}={name[:40]!r}… is {len(name.encode())} bytes long: a folder name takes at most {NAME_MAX}"
     return None
 
 
