@@ -358,8 +358,11 @@ def rasterize(
                         gamma, background, reg_values, st, _sh_degree(sh_degree, colors_or_sh), near_plane, eps2d,
                         clamp_sh_colors)
     _sh_degree(sh_degree, colors_or_sh)
-    # The camera packed on the host (with the centre where SH needs it) and copied over once.
-    view = to_device(host_view(camera, means3d.dtype, center=sh_degree is not None), device)
+    # The camera packed on the host (with the centre where SH needs it) and copied over once per
+    # camera (kept on it until it changes: Camera.memo).
+    center = sh_degree is not None
+    view = camera.memo(("view", means3d.dtype, center, device),
+                       lambda: to_device(host_view(camera, means3d.dtype, center=center), device))
     # Lean glue: no compaction (a culled Gaussian keeps its row and renders at opacity 0), so no
     # host wait; on the CUDA backend's plain path only (the host paths take compacted splats).
     dense = lean_glue and on_cuda and sort == "global" and not leaders
