@@ -156,6 +156,18 @@ class LeadingSplats(Protocol):
 
 
 @runtime_checkable
+class OpacityResets(Protocol):
+    """Optional, beside ``Method``: a method whose schedule resets its primitives' opacities (3DGS
+    drops them all to 0.01 and lets training restore them). The harness evaluates the error-against-
+    time curve just before such a step, never on it: right after a reset a model renders ~13.6 dB
+    (``protocols.train_loop.eval_steps``)."""
+
+    def reset_steps(self, steps: int) -> list[int]:
+        """The steps (1-based: ``train_step(s - 1)`` is the one) of a ``steps`` run that end in a reset."""
+        ...
+
+
+@runtime_checkable
 class ResolvedSettings(Protocol):
     """Optional, beside ``Method``: the complete settings a run trains with, the method's own
     defaults included. The protocol hashes them into the run's identity, so a result trained under

@@ -100,6 +100,10 @@ class GaussianSplatting:
     def num_gaussians(self) -> int:
         return len(self.trainer.gaussians)
 
+    def reset_steps(self, steps: int) -> list[int]:
+        """The steps of a ``steps`` run that end in an opacity reset (``OpacityResets``)."""
+        return self.trainer.strategy.reset_steps(steps)
+
     @torch.no_grad()
     def parameter_values(self) -> dict[str, torch.Tensor]:
         """The learned α, β, γ (γ relative to the scene extent) that this mode uses, for the

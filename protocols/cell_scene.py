@@ -57,5 +57,21 @@ def check_available(cfg: dict) -> str | None:
     try:
         get_dataset(ds["name"]).scene_dir(resolve_data_root(cfg.get("data_root")), str(cfg["scene"]))
     except DatasetNotFoundError as e:
-        return str(e)
+        return str(e) + download_hint(ds["name"], str(cfg["scene"]), cfg.get("data_root"))
     return None
+
+
+def download_hint(dataset: str, scene: str, data_root: str | None) -> str:
+    """For a missing scene of the paper's datasets, the ``smgs download`` command that gets it."""
+    import os
+    from pathlib import Path
+
+    from smgs.data.datasets import DATA_ROOT_ENV
+    from smgs.data.download import SOURCES, download_command
+
+    if dataset not in SOURCES:
+        return ""
+    root = data_root or os.environ.get(DATA_ROOT_ENV)
+    where = Path(root).expanduser().absolute() if root else "DIR"
+    return (f"; get it with: {download_command((dataset,), (scene,), where)}"
+            + ("" if root else f" and set {DATA_ROOT_ENV}=DIR"))

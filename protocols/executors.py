@@ -13,7 +13,7 @@ import os
 import traceback
 from typing import Any, Callable
 
-from protocols.progress import progress
+from protocols.progress import cell_status, progress
 
 Payload = dict[str, Any]
 Summary = dict[str, Any]
@@ -49,6 +49,13 @@ def _init_worker(threads: int) -> None:
     signal.signal(signal.SIGTERM, on_sigterm)  # a terminated worker stops its cell cleanly too
 
 
+def _advance(bar, summary: Summary) -> None:
+    """One cell done: its name and status first, so that the line the step prints (a log's, where
+    output is no terminal) names this cell and not the one before."""
+    bar.set_postfix_str(f"{summary.get('key')}: {cell_status(summary)}")
+    bar.update(1)
+
+
 def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str = "sequential",
             workers: int = 2, slurm: dict | None = None, folder: str | None = None) -> list[Summary]:
     """Run ``fn`` on every payload and return their summaries in payload order."""
@@ -60,8 +67,7 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
         if kind == "sequential":
             for i, p in enumerate(payloads):
                 out[i] = fn(p)
-                bar.update(1)
-                bar.set_postfix_str(f"{p.get('key')}: {out[i]['status']}")
+                _advance(bar, out[i])
         elif kind == "local":
             threads = max(1, (os.cpu_count() or 1) // max(1, workers))
             ctx = mp.get_context("spawn")  # no forked torch/OpenMP state
@@ -75,7 +81,7 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
                             out[i] = f.result()
                         except Exception as e:  # the cell could not even record its failure
                             out[i] = _died(payloads[i], e)
-                        bar.update(1)
+                        _advance(bar, out[i])
                 except BaseException:  # interrupted: stop the workers' cells too, not wait for them
                     pool.shutdown(wait=False, cancel_futures=True)
                     for proc in list(getattr(pool, "_processes", {}).values()):
@@ -111,5 +117,5 @@ def _submitit(fn, payloads, kind, slurm: dict, folder: str, bar) -> list[Summary
         except Exception as e:
             tb = traceback.format_exception_only(type(e), e)[-1].strip()
             out.append(_died(p, tb))
-        bar.update(1)
+        _advance(bar, out[-1])
     return out

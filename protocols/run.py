@@ -225,6 +225,7 @@ def check_devices(payloads: list[dict], executor: str) -> None:
 def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.cell import run_cell
     from protocols.executors import execute
+    from protocols.progress import cell_status
 
     from protocols.validate import validate_payloads
 
@@ -245,8 +246,7 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
                         slurm=OmegaConf.to_container(ex.slurm, resolve=True), folder=str(ex.slurm.folder))
     counts: dict[str, int] = {}
     for s in summaries:
-        k = "skipped (finished before)" if s.get("skipped") else \
-            "skipped (another process is writing it)" if s.get("busy") else s["status"]
+        k = cell_status(s)
         counts[k] = counts.get(k, 0) + 1
         if s["status"] != "ok":
             where = f" (traceback in {s['log']})" if s.get("log") else ""

@@ -27,7 +27,7 @@ from pathlib import Path
 from protocols.results import RunResult
 from smgs.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
 from reports.diagnostics import diagnostics_section
-from reports.environment import environment_markdown
+from reports.environment import environment_markdown, this_machine
 from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
@@ -93,11 +93,12 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
         files[f"plots/{p.name}"] = p.png
 
     probed = sorted({str(row.get("backend")) for row in stability or [] if row.get("backend")}) if computed_here else []
+    machine = this_machine(probed)   # once, for report.md and report.html alike
     md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
-                   probed, section_plots)
+                   machine, section_plots)
     files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
                               plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
-                              csv_link=lambda name: _link(files, name)).encode()
+                              csv_link=lambda name: _link(files, name), machine=machine).encode()
     _write(out, files, md)
     return out / REPORT
 
@@ -140,7 +141,7 @@ def _guard_plots(build) -> tuple[list[Plot], str | None]:
 
 def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, sections: list[Section],
               plots: list[Plot], plot_error: str | None, diag: Section, diag_plots: list[Plot], stab: Section,
-              runs: list[RunResult], files: dict[str, bytes], probed: list[str],
+              runs: list[RunResult], files: dict[str, bytes], machine: dict[str, str],
               section_plots: dict[str, list[Plot]] | None = None) -> str:
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -175,7 +176,7 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
     for p in diag_plots:
         out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
     out.append(stab.markdown(link=lambda name: _link(files, name)))
-    out += ["## Environment", "", environment_markdown(runs, probed_backends=probed)]
+    out += ["## Environment", "", environment_markdown(runs, machine)]
     return "\n".join(out).rstrip() + "\n"
 
 

@@ -86,7 +86,7 @@ def replace_dir(new: Path | str, target: Path | str) -> None:
         return
     if not target.is_dir() or target.is_symlink():
         raise NotADirectoryError(f"{target} is not a folder; move it away to write the new one there")
-    if _exchange(new, target):
+    if exchange_dirs(new, target):
         shutil.rmtree(new, ignore_errors=True)   # now holds the old content
         return
     aside = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.old-"))
@@ -99,8 +99,9 @@ def replace_dir(new: Path | str, target: Path | str) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); False where that is not there."""
+def exchange_dirs(a: Path | str, b: Path | str) -> bool:
+    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); False where that is not there
+    (another system, or a file system without it), and nothing was changed."""
     import ctypes
 
     try:

@@ -22,7 +22,6 @@ from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
 from smgs.raster.checks import NonFiniteInputError
 from smgs.raster.ray_depth import check_sort
-from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
@@ -170,19 +169,18 @@ class Trainer:
                background: torch.Tensor | None = None, leaders: bool = False) -> RenderOutput:
         g = self.gaussians
         deg = self.sh_degree() if sh_degree is None else sh_degree
-        if deg == 0:    # view-independent: colours directly (the renderer skips the view directions)
-            colors = eval_sh(0, g.params["sh0"], None) + 0.5
-            sh, deg_arg = (colors.clamp_min(0.0) if self.cfg.gaussians.clamp_colors else colors), None
-        else:
-            sh, deg_arg = g.sh[:, :num_sh_bases(deg)], deg
+        # the two SH parameter groups as they are (no torch.cat per step), the renderer reading the
+        # coefficients the degree uses; at degree 0 the first alone, so that the others get no
+        # gradient (Adam keeps their state until their degree is active, as 3DGS)
         if background is None:
             background = self.background
         return rasterize(
-            g.means, g.quats, g.scales, g.opacities, sh, camera,
+            g.means, g.quats, g.scales, g.opacities, g.params["sh0"], camera,
             alpha=g.alpha if self.use_gef else None,
             beta=g.beta if self.use_softmax else None,
             gamma=g.gamma if self.use_softmax else None,
-            mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg_arg,
+            mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg,
+            sh_rest=g.params["shN"] if deg > 0 else None,
             background=background,
             backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,

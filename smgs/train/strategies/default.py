@@ -132,10 +132,18 @@ class DefaultStrategy:
         if iteration > c.refine_start and iteration % c.refine_every == 0:
             after_reset = c.reset_every is not None and iteration > c.reset_every
             ev = self.densify_and_prune(g, opt, prune_big=after_reset)
-        if c.reset_every is not None and iteration % c.reset_every == 0:
+        if self._resets(iteration):
             self.reset_opacity(g, opt)
             ev.reset = True
         return ev
+
+    def _resets(self, iteration: int) -> bool:
+        """Whether the step of this 1-based iteration (an active one) ends in an opacity reset."""
+        return self.cfg.reset_every is not None and iteration % self.cfg.reset_every == 0
+
+    def reset_steps(self, steps: int) -> list[int]:
+        """The 1-based iterations of a ``steps`` run that end in an opacity reset (``step``)."""
+        return [i for i in range(1, steps + 1) if self.active(i) and self._resets(i)]
 
     # -- operations --------------------------------------------------------------------------
     @torch.no_grad()
