@@ -42,7 +42,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 if str(Path(__file__).resolve().parent) not in sys.path:   # gpu_stages, gpu_report, raster
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-BUNDLE = ROOT / ".gpu"
+BUNDLE_ENV = "SMGS_GPU_BUNDLE"   # another bundle folder than .gpu/ (the check's own tests: an empty one)
 GSPLAT_ENV = "SMGS_GPU_CHECK_GSPLAT"   # the gsplat build's state as the timing stage is started: "built", ...
 ORDER = ("env", "build", "pytest", "agreement", "timing", "syncs", "fox", "smoke", "pytest-train")
 BUDGET_S = 480
@@ -69,7 +69,8 @@ class StageRun:
 def setup_environment(shared: Path | None) -> Path | None:
     """The bundle's packages on PYTHONPATH (for this process and its children), no network for
     LPIPS, and the folder holding bench/ and data/fox; returns that folder."""
-    site = BUNDLE / "site"
+    bundle = Path(os.environ.get(BUNDLE_ENV) or ROOT / ".gpu")
+    site = bundle / "site"
     paths = [str(ROOT)] + ([str(site)] if site.is_dir() else [])
     old = os.environ.get("PYTHONPATH", "")
     os.environ["PYTHONPATH"] = os.pathsep.join(paths + ([old] if old else []))
@@ -78,7 +79,7 @@ def setup_environment(shared: Path | None) -> Path | None:
             sys.path.insert(0, p)
     os.environ.setdefault("SMGS_LPIPS_AUTO", "0")
     if shared is None:
-        for cand in (ROOT.parent / "shared", BUNDLE / "shared"):
+        for cand in (ROOT.parent / "shared", bundle / "shared"):
             if (cand / "bench").is_dir():
                 return cand
     return shared

@@ -18,16 +18,13 @@ from smgs.env import versions
 from protocols.cell_lock import cell_lock
 from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_in
 from protocols.live_cells import live_cell
-from protocols.results import (RESULTS_FILE, NewerResults, RunResult, atomic_write_text, config_hash, read_result,
-                               write_result)
+from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
+                               read_result, write_result)
 from protocols.run_settings import CellSettings, cell_settings
 from protocols.sections import BudgetConfig
 from smgs.train.config import earlier_train_keys
 
 LOG = "log.txt"
-# Keys of a cell's config that do not change its result (where and how it runs).
-VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
-            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:

@@ -41,6 +41,18 @@ def test_trains():
 """
 
 
+@pytest.fixture(autouse=True)
+def _no_bundle_here(tmp_path_factory, monkeypatch):
+    """The check puts the bundle of tools/gpu_bundle.py (wheels for the GPU machine's Python) on
+    PYTHONPATH and sys.path; where a checkout has one, this session and the tests after it must not
+    import from it."""
+    monkeypatch.setenv(gpu_check.BUNDLE_ENV, str(tmp_path_factory.mktemp("no_bundle")))
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    import os
+
+    monkeypatch.setenv("PYTHONPATH", os.environ.get("PYTHONPATH", ""))
+
+
 def _report(out: Path) -> tuple[str, dict]:
     md = next(out.glob("*.md")).read_text()
     return md, json.loads(next(out.glob("*.json")).read_text())

@@ -388,8 +388,11 @@ def rasterize(
         coefs = colors_or_sh if sh is None or sh_rest is None else sh.coefficients()
         return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, coefs, camera, alpha, beta,
                         gamma, background, reg_values, st, sh_degree, near_plane, eps2d, clamp_sh_colors)
-    # The camera packed on the host (with the centre where SH needs it) and copied over once.
-    view = to_device(host_view(camera, means3d.dtype, center=sh is not None), device)
+    # The camera packed on the host (with the centre where SH needs it) and copied over once per
+    # camera (kept on it until it changes: Camera.memo).
+    center = sh is not None
+    view = camera.memo(("view", means3d.dtype, center, device),
+                       lambda: to_device(host_view(camera, means3d.dtype, center=center), device))
     # Lean glue: no compaction (a culled Gaussian keeps its row and renders at opacity 0), so no
     # host wait; on the CUDA backend's plain path only (the host paths take compacted splats).
     dense = lean_glue and on_cuda and sort == "global" and not leaders
