@@ -20,11 +20,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from protocols.executors import Terminated, on_sigterm
 from protocols.grid import Cell, check_path_names, expand, path_name_problem
+from protocols.method_defaults import register as register_method_defaults
 
 log = logging.getLogger("smgs.protocols")
 
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+register_method_defaults()   # the built-in methods' configs take the trainer's defaults from the code (Hydra's store)
 GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "seeds=", "scene=", "method.name=")
 
 

@@ -7,8 +7,6 @@ import re
 import sys
 from pathlib import Path
 
-from protocols.run import CONFIG_DIR
-
 GROUPS = {"experiments": "experiment", "datasets": "dataset", "budgets": "budget", "protocols": "protocol"}
 USAGE = "usage: smgs list {" + ",".join(("methods", *GROUPS)) + "}"
 ABOUT_CHARS = 160   # whole sentences of a config's opening comment, up to about this many characters
@@ -46,6 +44,8 @@ def first_comment(path: Path) -> str:
 
 
 def config_entries(group: str) -> list[tuple[str, str]]:
+    from protocols.run import CONFIG_DIR   # here, not above: `smgs --help` imports this module
+
     return [(p.stem, first_comment(p)) for p in sorted((Path(CONFIG_DIR) / group).glob("*.yaml"))]
 
 
