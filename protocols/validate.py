@@ -29,7 +29,7 @@ NUMBERS: tuple[tuple[str, str, float], ...] = (
     ("eval.viewer_views", "int", 0),
     ("eval.consistency_max_width", "int", 0),
     ("budget.cap", "int", 1),
-    ("budget.densify_grad_threshold", "number", 0),
+    ("budget.grad_threshold", "number", 0),
     ("executor.workers", "int", 1),
 )
 

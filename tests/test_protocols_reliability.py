@@ -129,7 +129,7 @@ def test_a_sweep_with_a_failed_cell_exits_non_zero_saying_how_many(tmp_path):
     ("++budget.kind=7", ["budget.kind=7: expected a string"]),
     ("++budget.kind=huge", ["unknown kind 'huge'", "budget.kind", "5pct"]),
     ("++budget.preset=cap", ["BudgetConfig at budget", "unknown key(s) ['preset']"]),
-    ("+budget.densify_grad_threshold=high", ["budget.densify_grad_threshold", "number"]),
+    ("+budget.grad_threshold=high", ["budget.grad_threshold", "number"]),
     ("dataset.train.optim=nosuch", ["nosuch", "hyperparameter set", "3dgs2023"]),
     ("++method.train.k_max=lots", ["k_max", "'lots'", "int"]),
     ("backend=gpu9", ["backend", "gpu9", "reference"]),

@@ -114,7 +114,7 @@ def refinement_trace(mode: str, steps: int, size: tuple[int, int], seed: int = 0
     from baselines.trainer_settings import scale_schedule
 
     mc = {"mode": mode, "seed": seed, "steps": schedule[0],
-          "densify": {"budget_kind": "full", "grow_grad2d": threshold}}
+          "densify": {"budget_kind": "full", "grad_threshold": threshold}}
     scale_schedule(mc, schedule[0], schedule[1])
     _, tr = _trainer(mc, size, None, gamma_init)
     st, refine = tr.strategy, tr.strategy.densify_and_prune

@@ -268,13 +268,15 @@ class DensifyConfig:
     ``cap_max``, the refinement schedule, ``prune_opacity`` as the dead-Gaussian threshold and the
     ``mcmc_*`` fields; it ignores the gradient, clone/split, pruning and reset fields.
     ``budget_kind`` names the budget's kind (``BUDGETS``), whose settings the section starts from
-    (``densify_config``); ``budget`` is its earlier name (``RENAMED``).
+    (``densify_config``); ``budget`` is its earlier name (``RENAMED``). ``grad_threshold``: clone or
+    split where a Gaussian's mean view-space gradient reaches it (3DGS's densify_grad_threshold,
+    gsplat's grow_grad2d, this section's own earlier name); the budget's kind sets it.
     """
 
     budget_kind: str = "full"
     enabled: bool = True
     strategy: Literal["default", "mcmc"] = "default"
-    grow_grad2d: float = 2e-4
+    grad_threshold: float = 2e-4
     cap: int | None = None
     percent_dense: float = 0.01
     split_n: int = 2
@@ -296,7 +298,7 @@ class DensifyConfig:
     mcmc_scale_reg: float = 0.01
 
     RANGES: ClassVar[dict[str, Range]] = {
-        "grow_grad2d": Range(0), "cap": Range(1, integer=True, optional=True), "percent_dense": Range(0, lo_open=True),
+        "grad_threshold": Range(0), "cap": Range(1, integer=True, optional=True), "percent_dense": Range(0, lo_open=True),
         "split_n": COUNT, "prune_opacity": Range(0, 1, hi_open=True),
         "size_prune": Range(0, lo_open=True, optional=True), "prune_screen_px": Range(0, lo_open=True, optional=True),
         "refine_start": Range(0, integer=True), "refine_stop": Range(0, integer=True), "refine_every": COUNT,
@@ -304,16 +306,20 @@ class DensifyConfig:
         **{f: Range(0) for f in ("mcmc_grow_rate", "mcmc_noise_lr", "mcmc_gate_k", "mcmc_gate_t",
                                  "mcmc_opacity_reg", "mcmc_scale_reg")},
     }
+    # Keys renamed since configs, checkpoints and result hashes were written with them (earlier name:
+    # name now). A dict with an earlier name reads as if it had today's (``current_keys``); a result's
+    # hash keeps the earlier form (protocols.cell), so no finished run retrains for a rename.
+    RENAMED: ClassVar[dict[str, str]] = {"budget": "budget_kind", "grow_grad2d": "grad_threshold"}
 
 
 # The budget kinds and what each sets: the one home of the paper's gradient thresholds (configs/budget/
 # names a kind; protocols read the threshold here).
 BUDGETS: dict[str, dict[str, Any]] = {
-    "full": dict(grow_grad2d=2e-4),       # 3DGS default
-    "light": dict(grow_grad2d=3e-4),      # Softmax-GS_light
-    "mini": dict(grow_grad2d=5e-4),       # Softmax-GS_mini
-    "5pct": dict(grow_grad2d=4e-3),       # 3DGS_5% / Softmax-GS_5%
-    "cap": dict(grow_grad2d=2e-4),        # a hard maximum count (set ``cap``)
+    "full": dict(grad_threshold=2e-4),       # 3DGS default
+    "light": dict(grad_threshold=3e-4),      # Softmax-GS_light
+    "mini": dict(grad_threshold=5e-4),       # Softmax-GS_mini
+    "5pct": dict(grad_threshold=4e-3),       # 3DGS_5% / Softmax-GS_5%
+    "cap": dict(grad_threshold=2e-4),        # a hard maximum count (set ``cap``)
     # 3DGS-MCMC at a hard cap (set ``cap``): refinement 500..25K every 100 (paper, gsplat), no reset.
     "mcmc": dict(strategy="mcmc", refine_stop=25_000, reset_every=None),
 }
@@ -325,7 +331,7 @@ def budget_threshold(kind: str) -> float | None:
     if kind not in BUDGETS:
         raise ValueError(f"unknown budget kind {kind!r}; known: {', '.join(BUDGETS)}")
     spec = BUDGETS[kind]
-    return None if spec.get("strategy") == "mcmc" else float(spec.get("grow_grad2d", DensifyConfig.grow_grad2d))
+    return None if spec.get("strategy") == "mcmc" else float(spec.get("grad_threshold", DensifyConfig.grad_threshold))
 
 
 def densify_config(budget_kind: str = "full", **overrides: Any) -> DensifyConfig:
@@ -457,18 +463,10 @@ PRESETS: dict[type, tuple[str, Callable[..., Any]]] = {
     DensifyConfig: ("budget_kind", _densify_preset),
 }
 
-# Keys renamed since configs, checkpoints and result hashes were written with them: section -> {earlier
-# name: name now}. A dict with an earlier name is read as if it had today's (``current_keys``); a
-# result's hash keeps the earlier form (protocols.cell), so no finished run retrains for a rename.
-RENAMED: dict[type, dict[str, str]] = {
-    DensifyConfig: {"budget": "budget_kind"},
-}
-
-
 def current_keys(cls: type, data: dict[str, Any], where: str = "") -> dict[str, Any]:
-    """``data`` (a section of type ``cls``) with its earlier key names (``RENAMED``) as today's; one
-    given under both names is an error that names them."""
-    renamed = {old: new for old, new in RENAMED.get(cls, {}).items() if old in data}
+    """``data`` (a section of type ``cls``) with its earlier key names (the section's ``RENAMED``) as
+    today's; one given under both names is an error that names them."""
+    renamed = {old: new for old, new in getattr(cls, "RENAMED", {}).items() if old in data}
     for old, new in renamed.items():
         if new in data:
             raise ValueError(f"{cls.__name__}{' at ' + where if where else ''}: {old!r} is the earlier name of "
@@ -485,7 +483,7 @@ def earlier_train_keys(data: dict[str, Any]) -> dict[str, Any]:
     """A TrainConfig dict with each renamed key under its earlier name (``RENAMED``): the form in
     which finished results were hashed (protocols.cell.result_hash)."""
     def earlier(cls: type, section: dict[str, Any]) -> dict[str, Any]:
-        back = {new: old for old, new in RENAMED[cls].items()}
+        back = {new: old for old, new in cls.RENAMED.items()}
         return {back.get(k, k): v for k, v in section.items()}
 
     return _rename_sections(data, earlier)
@@ -495,7 +493,7 @@ def _rename_sections(data: dict[str, Any], rename: Callable[[type, dict[str, Any
     hints = typing.get_type_hints(TrainConfig)
     out = dict(data)
     for f in dataclasses.fields(TrainConfig):
-        if isinstance(out.get(f.name), dict) and hints[f.name] in RENAMED:
+        if isinstance(out.get(f.name), dict) and getattr(hints[f.name], "RENAMED", None):
             out[f.name] = rename(hints[f.name], out[f.name])
     return out
 
