@@ -12,9 +12,7 @@ is imported when the method is created or its class is asked for.
 
 from __future__ import annotations
 
-import importlib
 import inspect
-import warnings
 from importlib import metadata
 from typing import Any
 
@@ -23,6 +21,7 @@ import torch
 from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, Resolved, RunSettings, SceneNeeds, merge_config
 from smgs.data.scene import Scene
 from smgs.device import as_device
+from smgs.plugins import entry_points, load_target, source_of
 
 ENTRY_POINT_GROUP = "smgs.methods"
 
@@ -55,14 +54,7 @@ def unregister(name: str) -> None:
 
 
 def _entry_points() -> dict[str, metadata.EntryPoint]:
-    eps = {}
-    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        if ep.name in BUILTINS:
-            warnings.warn(f"plugin method {ep.name!r} ({ep.value}) is shadowed by the built-in of that name",
-                          stacklevel=3)
-            continue
-        eps.setdefault(ep.name, ep)
-    return eps
+    return entry_points(ENTRY_POINT_GROUP, BUILTINS, "plugin method")
 
 
 def list_methods() -> list[str]:
@@ -80,24 +72,13 @@ def get_spec(name: str) -> MethodSpec:
         obj = ep.load()
         if isinstance(obj, MethodSpec):
             return obj
-        dist = getattr(ep, "dist", None)
-        return MethodSpec(name, obj, source=f"plugin {dist.name if dist else ep.value}")
+        return MethodSpec(name, obj, source=source_of(ep))
     raise KeyError(f"unknown method {name!r}; registered methods: {', '.join(list_methods())}")
-
-
-def _import(target: str) -> Any:
-    module, _, attr = target.partition(":")
-    if not module or not attr:
-        raise ValueError(f"method target must be 'module:Class', got {target!r}")
-    obj = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def method_class(name: str) -> type:
     spec = get_spec(name)
-    cls = _import(spec.target) if isinstance(spec.target, str) else spec.target
+    cls = load_target(spec.target, "method") if isinstance(spec.target, str) else spec.target
     missing = [attr for attr in METHOD_FUNCTIONS if not callable(getattr(cls, attr, None))]
     if missing:
         raise TypeError(f"method {name!r} ({cls!r}) does not implement "

@@ -38,6 +38,15 @@ def _method_overrides(method: str) -> list[str]:
     return ["method=plugin", f"method.name={method}"]
 
 
+def _dataset_overrides(dataset: str) -> list[str]:
+    """A dataset with a yaml in configs/dataset/ is composed from it; a scene format or benchmark
+    dataset registered only through the ``smgs.datasets`` entry point, from configs/dataset/plugin.yaml
+    with its name as the dataset's name and kind (its settings: ``+dataset.KEY=VALUE``)."""
+    if (Path(CONFIG_DIR) / "dataset" / f"{dataset}.yaml").exists():
+        return [f"dataset={dataset}"]
+    return ["dataset=plugin", f"dataset.name={dataset}", f"dataset.kind={dataset}"]
+
+
 def _budget_group(budget: str, overrides: list[str]) -> str:
     """The budget file a cell's budget name is composed from: ``configs/budget/<name>.yaml``, or, for
     a budget made on the command line (``budget=cap4 budget.cap=N budget.name=capN``, docs/usage.md),
@@ -59,8 +68,9 @@ def _cell_config(cell: Cell, overrides: list[str]) -> dict:
     from hydra import compose
 
     # the user's key=value apply to every cell; the cell's own groups always win
-    own = [f"budget={_budget_group(cell.budget, overrides)}" if o.startswith("budget=") else o
-           for o in cell.overrides()[1:]]
+    own = [x for o in cell.overrides()[1:] for x in (
+        [f"budget={_budget_group(cell.budget, overrides)}"] if o.startswith("budget=") else
+        _dataset_overrides(cell.dataset) if o.startswith("dataset=") else [o])]
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith(GRID_KEYS)]
                   + _method_overrides(cell.method) + own)
     return OmegaConf.to_container(cfg, resolve=True)
@@ -69,12 +79,16 @@ def _cell_config(cell: Cell, overrides: list[str]) -> dict:
 def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
     from hydra import compose
 
+    from smgs.data.registry import default_scenes
+
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith("dataset=")]
-                  + [f"dataset={dataset}"])
+                  + _dataset_overrides(dataset))
     ds = OmegaConf.to_container(cfg.dataset, resolve=True)
     scenes = ds.get("scenes")
     if not scenes and ds.get("path") not in (None, "???"):
         scenes = [Path(str(ds["path"])).name]  # a dataset given by its folder: the folder's name
+    if not scenes:
+        scenes = list(default_scenes(str(ds["kind"]), str(ds["name"])))   # a plugin's own
     if not scenes:
         raise ValueError(f"dataset {dataset!r} needs the scene's folder: add dataset.path=/path/to/scene "
                          f"(configs/dataset/{dataset}.yaml lists no scenes of its own)")
@@ -134,9 +148,13 @@ def grid_datasets(cfg: DictConfig, overrides: list[str]) -> tuple[list[str], lis
 
 def check_command_line(args: list[str]) -> str | None:
     """A command-line mistake Hydra would only answer with its own words: what is wrong and the fix."""
-    if _given(args, "dataset.path") is not None and _given(args, "dataset") is None:
+    if _given(args, "dataset.path") is not None and _given(args, "dataset") is None \
+            and _given(args, "grid.datasets") is None:
         return ("dataset.path names a scene folder of the dataset kinds that take one: add dataset=colmap "
                 "(images/ and sparse/0/) or dataset=transforms (transforms.json) before it")
+    dataset = _given(args, "dataset")
+    if dataset is not None and not (Path(CONFIG_DIR) / "dataset" / f"{dataset}.yaml").exists():
+        return unknown_dataset(dataset)
     method = _given(args, "method")
     if method is not None and not (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
         return unknown_method(method, "method")
@@ -152,6 +170,18 @@ def unknown_method(name: str, key: str) -> str:
     if name in known:
         return f"{key}={name} is a plugin method without a file in configs/method/: run it with grid.methods=[{name}]"
     return f"{key}={name} is no method; known methods: {', '.join(known)}"
+
+
+def unknown_dataset(name: str) -> str:
+    """The one-block message for ``dataset=NAME`` without a file in configs/dataset/: a registered
+    plugin scene format or dataset runs through the grid; another name lists the known ones."""
+    from smgs.data.registry import list_names
+
+    if name in list_names():
+        return (f"dataset={name} is a plugin scene format or dataset without a file in configs/dataset/: run it "
+                f"with grid.datasets=[{name}] (its settings as +dataset.KEY=VALUE)")
+    files = sorted(p.stem for p in (Path(CONFIG_DIR) / "dataset").glob("*.yaml") if p.stem != "plugin")
+    return f"dataset={name} is no dataset; known: {', '.join(files)} (and the scene formats {', '.join(list_names())})"
 
 
 def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:

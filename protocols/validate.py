@@ -17,11 +17,7 @@ NUMBERS: tuple[tuple[str, str, float], ...] = (
     ("protocol.test_every", "int", 1),         # 0 would leave no test view to score
     ("protocol.schedule_steps", "int", 1),     # null: the schedule is not scaled
     ("protocol.max_width", "int", MIN_SIDE),
-    ("dataset.steps", "int", 1),
-    ("dataset.width", "int", MIN_SIDE),        # the procedural scene's image size
-    ("dataset.height", "int", MIN_SIDE),
-    ("dataset.size", "int", MIN_SIDE),         # a 2D pattern's image size
-    ("dataset.n_views", "int", 2),
+    ("dataset.steps", "int", 1),               # the dataset's other keys are its format's (their RANGES)
     ("seed", "int", 0),
     ("checkpoint_every", "int", 0),
     ("eval.fps_repeats", "int", 1),
@@ -94,9 +90,11 @@ def config_problems(cfg: dict, settings: CellSettings | None = None) -> list[str
     if not problems:
         from protocols.sections import BudgetConfig, EvalConfig, ProtocolConfig
 
-        for section in (EvalConfig, ProtocolConfig, BudgetConfig):
+        from protocols.cell_scene import scene_format
+
+        for section in (EvalConfig.of, ProtocolConfig.of, BudgetConfig.of, scene_format):
             try:
-                section.of(cfg)
+                section(cfg)
             except (ValueError, TypeError) as e:
                 problems.append(str(e))
     if not problems:

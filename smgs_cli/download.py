@@ -10,7 +10,8 @@ import textwrap
 import sys
 from pathlib import Path
 
-from smgs.data.datasets import DATA_ROOT_ENV, get_dataset
+from smgs.data.datasets import DATA_ROOT_ENV
+from smgs.data.registry import get_dataset
 from smgs.data.download import MANIFEST, SOURCES, DownloadError, DownloadRequest, datasets_of_archive, download
 from smgs.data.download.get import STAGING
 

@@ -49,6 +49,17 @@ def config_entries(group: str) -> list[tuple[str, str]]:
     return [(p.stem, first_comment(p)) for p in sorted((Path(CONFIG_DIR) / group).glob("*.yaml"))]
 
 
+def dataset_entries() -> list[tuple[str, str]]:
+    """The dataset configs (but configs/dataset/plugin.yaml, the runner's stand-in for what follows),
+    then the scene formats and datasets registered as plugins without a file of their own."""
+    from smgs.data.registry import list_names, plugin_source
+
+    entries = [(n, about) for n, about in config_entries("dataset") if n != "plugin"]
+    files = {n for n, _ in entries}
+    return entries + [(n, f"a scene format or dataset from a plugin: grid.datasets=[{n}] ({plugin_source(n)})")
+                      for n in list_names() if plugin_source(n) and n not in files]
+
+
 def method_entries() -> list[tuple[str, str]]:
     from baselines.registry import get_spec, list_methods
 
@@ -70,7 +81,8 @@ def main(args: list[str]) -> int:
     if what not in ("methods", *GROUPS):
         print(USAGE, file=sys.stderr)
         return 2
-    entries = method_entries() if what == "methods" else config_entries(GROUPS[what])
+    listed = {"methods": method_entries, "datasets": dataset_entries}
+    entries = listed[what]() if what in listed else config_entries(GROUPS[what])
     width = max((len(n) for n, _ in entries), default=0)
     for name, about in entries:
         print(f"{name:<{width}}  {about}".rstrip())

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from protocols import evaluate_ply
-from smgs.data.datasets import load_scene
+from smgs.data import load_scene
 from smgs.io.ply import FILTER_3D_NOTE, PlyFormatError, read_ply
 from test_io_ply import known_gaussians, write_by_hand
 
 
 @pytest.fixture(scope="module")
 def scene():
-    return load_scene("procedural", n_views=8, size=(48, 32), test_every=4)
+    return load_scene("procedural", n_views=8, width=48, height=32, test_every=4)
 
 
 def _sigmoid(x):

@@ -43,7 +43,7 @@ def refused(tmp_path: Path, *args: str, base: list[str] = BASE) -> str:
     ("protocol.schedule_steps=-1", "protocol.schedule_steps=-1: must be at least 1"),
     ("protocol.test_every=0", "protocol.test_every=0: must be at least 1"),
     ("protocol.max_width=1", "protocol.max_width=1: must be at least 16"),
-    ("dataset.width=8", "dataset.width=8: must be at least 16"),
+    ("dataset.width=8", "dataset.width=8: must be a whole number ≥ 16"),
     ("eval.flow=bogus", "eval.flow='bogus': must be one of geometric, opencv, opencv-deepflow"),
     ("eval.lpips_net=vgq", "eval.lpips_net='vgq': must be one of vgg, alex"),
     ("executor.workers=0", "executor.workers=0: must be at least 1"),

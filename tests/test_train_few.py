@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from smgs.data.datasets import load_scene
+from smgs.data import load_scene
 from smgs.train import TrainConfig, from_dict
 from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer
@@ -22,7 +22,7 @@ MODES_SORTS = [("3dgs", "global"), ("gef_only", "global"), ("softmax_only", "glo
 
 @pytest.fixture(scope="module")
 def scene():
-    return load_scene("procedural", n_views=4, size=(32, 24))
+    return load_scene("procedural", n_views=4, width=32, height=24)
 
 
 def _densify(strategy: str, **over) -> dict:

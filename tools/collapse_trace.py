@@ -33,7 +33,7 @@ import torch  # noqa: E402
 def build(args: argparse.Namespace):
     from baselines.method import RunSettings
     from baselines.trainer_settings import train_config
-    from smgs.data.datasets import load_scene
+    from smgs.data import load_scene
     from smgs.train import TrainConfig, from_dict
     from smgs.train.config import budget_threshold
     from smgs.train.trainer import Trainer

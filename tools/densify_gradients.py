@@ -54,11 +54,11 @@ class GradStats:
 def _trainer(mc: dict, size: tuple[int, int], beta_init: float | None, gamma_init: float | None) -> tuple:
     """The procedural scene and a Trainer for the TrainConfig dict ``mc`` (mode and seed set), with
     the softmax modes' initial β and γ (per splat size) where given (None: the defaults)."""
-    from smgs.data.datasets import load_scene
+    from smgs.data import load_scene
     from smgs.train import TrainConfig, from_dict
     from smgs.train.trainer import Trainer
 
-    scene = load_scene("procedural", n_views=24, size=size, test_every=8)
+    scene = load_scene("procedural", n_views=24, width=size[0], height=size[1], test_every=8)
     mc["gaussians"] = {k: {"init": v} for k, v in (("beta", beta_init), ("gamma", gamma_init)) if v is not None}
     torch.manual_seed(mc["seed"])
     return scene, Trainer(scene, from_dict(TrainConfig, mc), device="cpu")

@@ -12,12 +12,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch
 
 from smgs.camera import Camera
+from smgs.data.formats import SceneRequest
+from smgs.data.images import MIN_SIDE
 from smgs.data.scene import Scene, View, camera_extent, check_split, split_description, split_every
+from smgs.ranges import Range
 
 _EPS = 1e-9
 
@@ -311,3 +315,24 @@ def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), 
                  extent=camera_extent([v.camera for v in train]),
                  points=torch.from_numpy(pts).float(), point_colors=torch.from_numpy(cols).float(),
                  background=torch.tensor(world.background, dtype=torch.float32), trajectory=traj, meta=meta)
+
+
+@dataclass(frozen=True)
+class ProceduralFormat:
+    """The procedural scene as a scene format (``kind: procedural``): ``n_views`` ring cameras of
+    ``width`` x ``height`` px, made from ``seed``; one scene, whatever its name."""
+
+    n_views: int = 24
+    width: int = 128
+    height: int = 96
+    seed: int = 0
+
+    RANGES: ClassVar[dict[str, Range]] = {"n_views": Range(2, integer=True), "width": Range(MIN_SIDE, integer=True),
+                                          "height": Range(MIN_SIDE, integer=True), "seed": Range(0, integer=True)}
+
+    def load(self, request: SceneRequest) -> Scene:
+        return make_procedural_scene(n_views=self.n_views, size=(self.width, self.height), seed=self.seed,
+                                     test_every=request.test_every)
+
+    def check(self, request: SceneRequest) -> None:
+        check_procedural_split(self.n_views, request.test_every)

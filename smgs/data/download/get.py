@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from smgs.data.datasets import get_dataset
+from smgs.data.registry import get_dataset
 from smgs.data.download.errors import ArchiveError, DownloadError
 from smgs.data.download.fetch import open_remote, receive, sidecar
 from smgs.data.download.manifest import Manifest, sha256_of
