@@ -380,7 +380,11 @@ def rasterize(
     more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
                                st) if fused else []
     chk = checks.InputChecks(defer=lean_glue)
-    chk.finite([("camera.K", camera.K), ("camera.viewmat", camera.viewmat)])   # the trainer's: on the host
+    cam_named = [("camera.K", camera.K), ("camera.viewmat", camera.viewmat)]
+    if all(t.device.type == "cpu" for _, t in cam_named):   # the trainer's: decided once per camera (Camera.memo)
+        camera.memo(("finite",), lambda: checks.finite(cam_named))
+    else:
+        chk.finite(cam_named)
     named = [("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
              *_used_rest(sh_rest, sh_degree), *more]
     if fused and lean_glue:   # the fused projection checks them itself: a flag it raises, read after the render
