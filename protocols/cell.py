@@ -18,16 +18,13 @@ from smgs.env import versions
 from protocols.cell_lock import cell_lock
 from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_in
 from protocols.live_cells import live_cell
-from protocols.results import (RESULTS_FILE, NewerResults, RunResult, atomic_write_text, config_hash, read_result,
-                               write_result)
+from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
+                               read_result, write_result)
 from protocols.run_settings import CellSettings, cell_settings
 from protocols.sections import BudgetConfig
 from smgs.train.config import earlier_train_keys
 
 LOG = "log.txt"
-# Keys of a cell's config that do not change its result (where and how it runs).
-VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
-            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
@@ -211,7 +208,7 @@ def _check_same_model(kept: RunResult, cfg: dict, run_dir: Path) -> None:
     old, new = (kept.source or {}).get("sha256"), (cfg.get("ply") or {}).get("sha256")
     if not old or not new or old == new:
         return
-    from protocols.evaluate_ply import own_budget_name
+    from protocols.grid import own_budget_name
 
     path = Path(cfg["ply"]["path"])
     raise LeftAlone(f"{run_dir} holds the evaluation of {kept.source.get('ply')} (sha256 {old[:12]}…), another "

@@ -14,13 +14,10 @@ experiment's report is rebuilt, the pretrained row beside the trained ones.
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
-from protocols.grid import Cell
-
-BUDGET = "pretrained"
+from protocols.grid import PRETRAINED as BUDGET, Cell
 
 USAGE = """usage: smgs evaluate MODEL.ply [KEY=VALUE ...] [--force]
        (python -m protocols.evaluate_ply, the same arguments)
@@ -55,11 +52,10 @@ def evaluation_config(ply: Path, overrides: list[str]) -> dict:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from protocols.ply import sha256
+    from protocols.ply import read_scored_ply, sha256
     from protocols.run import CONFIG_DIR, _method_overrides
-    from smgs.io.ply import read_ply
 
-    mode = read_ply(ply).mode   # bad input stops here, before anything is composed or written
+    mode = read_scored_ply(ply).mode   # bad input stops here, before anything is composed or written
     for o in overrides:
         if o.startswith("method=") and o.split("=", 1)[1] != mode:
             raise ValueError(f"{ply} holds a {mode} model; it cannot be evaluated as {o.split('=', 1)[1]!r} "
@@ -107,13 +103,6 @@ def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
     return summary
 
 
-def own_budget_name(ply: Path) -> str:
-    """A budget name for ``ply``'s own cell, from its name (its folder's for a file named like
-    every 3DGS output, ``point_cloud.ply``)."""
-    stem = ply.parent.name if ply.stem == "point_cloud" and ply.parent.name else ply.stem
-    return f"{BUDGET}-" + (re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "other")
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--force" in argv:
@@ -121,13 +110,15 @@ def main(argv: list[str] | None = None) -> int:
     if "-h" in argv or "--help" in argv:
         print(USAGE)
         return 0
-    plys = [a for a in argv if "=" not in a]
+    from protocols.ply import is_ply_argument
+
+    plys = [a for a in argv if is_ply_argument(a)]
     if len(plys) != 1:
         what = "no model given" if not plys else f"one model at a time, got {len(plys)}: {' '.join(plys)}"
         print(f"{USAGE}\n\nerror: {what}", file=sys.stderr)
         return 2
     try:
-        s = evaluate_ply(plys[0], [a for a in argv if "=" in a])
+        s = evaluate_ply(plys[0], [a for a in argv if not is_ply_argument(a)])
     except (OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -18,6 +18,9 @@ from smgs.atomic import atomic_write_text
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"
 POINTER = "checkpoint.json"   # in a run directory: which checkpoint is its last
+# Keys of a cell's config that do not change its result (where and how it runs).
+VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
+            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 @dataclass

@@ -13,8 +13,8 @@ dispatch mode sees every operator and
   ``copy_``), and a 0-dim CPU tensor as an operand of an elementwise operator (CUDA reads it as a
   scalar on the host);
 * counts what synchronises the host with a GPU: reading a Remote's value (``_local_scalar_dense``,
-  ``.item()``, ``bool()``, ``.tolist()``), data-dependent shapes (``nonzero``, boolean indexing,
-  ``unique``, ...), a blocking copy from a Remote to the CPU; and copies from the CPU to a Remote
+  ``.item()``, ``bool()``, ``.tolist()``), data-dependent shapes (``nonzero``, boolean indexing and
+  boolean index assignment, ``unique``, ...), a blocking copy from a Remote to the CPU; and copies from the CPU to a Remote
   (which pageable memory makes blocking too). ``non_blocking=True`` copies to the host are counted
   apart (they do not wait);
 * counts the device work a GPU's host would launch (``launches``: every operator on a Remote but
@@ -52,6 +52,8 @@ _DATA_SHAPED = {aten.nonzero.default, aten.nonzero_static.default, aten.masked_s
                 aten.repeat_interleave.Tensor, aten.is_nonzero.default, aten.equal.default,
                 aten.allclose.default}
 _READS = {aten._local_scalar_dense.default, aten.is_nonzero.default}
+# indexing operators that wait when an index is a boolean mask (t[mask], t[mask] = v)
+_INDEXED = {aten.index.Tensor, aten.index_put_.default, aten.index_put.default, aten._index_put_impl_.default}
 # operators that run nothing on the device: views, and allocations without a fill
 _NO_WORK = {aten._unsafe_view.default, aten.empty.memory_format, aten.empty_strided.default, aten.new_empty.default,
             aten.new_empty_strided.default, aten.empty_like.default, aten.is_nonzero.default}
@@ -176,6 +178,8 @@ class _Mode(TorchDispatchMode):
                 self._mixed(func, flat)
         if remote and (func in _READS or func in _DATA_SHAPED):
             self.sync(str(func.overloadpacket.__name__))
+        elif remote and func in _INDEXED and any(t.dtype == torch.bool for t in flat[1:]):
+            self.sync(f"boolean {func.overloadpacket.__name__}")   # a mask index finds its rows first
         if (remote or to_remote) and _device_work(func):
             self.launches[str(func.overloadpacket.__name__)] += 1
         out = func(*_unwrap(args), **{k: _unwrap(v) for k, v in kwargs.items()})

@@ -18,13 +18,13 @@ from PIL import Image
 PINHOLE = 1   # COLMAP's camera model id
 
 
-def tiny_jpeg(w: int = 8, h: int = 6) -> bytes:
+def tiny_jpeg(w: int = 24, h: int = 16) -> bytes:
     buf = io.BytesIO()
     Image.new("RGB", (w, h), (90, 120, 30)).save(buf, "JPEG")
     return buf.getvalue()
 
 
-def colmap_model(names: list[str], w: int = 8, h: int = 6) -> dict[str, bytes]:
+def colmap_model(names: list[str], w: int = 24, h: int = 16) -> dict[str, bytes]:
     """cameras.bin, images.bin and points3D.bin (COLMAP's binary layout): one PINHOLE camera, each
     image registered on a circle around the origin, one point seen by none."""
     cams = struct.pack("<Q", 1) + struct.pack("<iiQQ4d", 1, PINHOLE, w, h, 10.0, 10.0, w / 2, h / 2)
@@ -66,11 +66,13 @@ def tandt_db_zip() -> bytes:
 
 class Server:
     """``files``: name -> bytes, served at /<name>. ``cut_after``: name -> byte count at which the next
-    answer for it is broken off (once). ``requests`` records (path, Range, If-Range) of each GET."""
+    answer for it is broken off (once). ``failing``: names answered 503. ``requests`` records (path,
+    Range, If-Range) of each GET."""
 
     def __init__(self, files: dict[str, bytes]):
         self.files = dict(files)
         self.cut_after: dict[str, int] = {}
+        self.failing: set[str] = set()   # names answered 503 (a server failure), else 404 when absent
         self.requests: list[tuple[str, str | None, str | None]] = []
         server = self
 
@@ -93,7 +95,7 @@ class Server:
         rng, if_range = h.headers.get("Range"), h.headers.get("If-Range")
         self.requests.append((h.path, rng, if_range))
         if name not in self.files:
-            h.send_error(404, "Not Found")
+            h.send_error(503 if name in self.failing else 404)
             return
         data, start = self.files[name], 0
         m = re.fullmatch(r"bytes=(\d+)-", rng or "")

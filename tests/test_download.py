@@ -164,6 +164,13 @@ def test_a_404_says_the_file_is_gone_and_how_to_fetch_it_by_hand(tmp_path):
     assert not (root / "db").exists()
 
 
+def test_a_server_failure_says_to_try_again_later(tmp_path):
+    with Server({}) as srv, pytest.raises(NetworkError, match=r"answered HTTP 503 Service Unavailable, a failure of "
+                                                              r"the server: try again later\. Without network here"):
+        srv.failing.add("tandt_db.zip")
+        _get(tmp_path / "data", srv.url, "tandt")
+
+
 def test_no_network_names_the_file_to_fetch_by_hand_and_the_command_to_give_it(tmp_path):
     root = tmp_path / "data"
     with pytest.raises(NetworkError) as e:
@@ -343,7 +350,7 @@ def test_help_gives_each_dataset_its_url_size_terms_and_layout(capsys):
                 "https://jonbarron.info/mipnerf360/", "https://tanksandtemples.org/license/",
                 "http://visual.cs.ucl.ac.uk/pubs/deepblending/"):
         assert url in text
-    assert "tandt_db.zip, 650 MB (the 3DGS README)" in text and "360_v2.zip, size not confirmed" in text
+    assert "tandt_db.zip, 650 MB according to the 3DGS README" in text and "360_v2.zip, size not confirmed" in text
     assert "layout: $ROOT/mipnerf360/<scene>/{images,images_2,images_4,images_8}/" in text
     assert "layout: $ROOT/db/<scene>/images/ and <scene>/sparse/0/{cameras,images,points3D}.bin" in text
     assert "--from-file" in text

@@ -177,6 +177,9 @@ def test_a_results_file_of_a_newer_smgs_is_left_as_it_is(tmp_path, counting, ext
     assert str(run_dir / "results.json") in s[0]["error"]
     assert counting.calls == [] and _state(run_dir, export=False) == before
     assert [p.name for p in run_dir.parent.iterdir()] == ["seed0"]
+    from reports.runs import load_runs
+
+    assert [(p, "upgrade smgs" in why) for p, why in load_runs(tmp_path).unreadable] == [(run_dir / "results.json", True)]
 
 
 def test_unknown_fields_of_a_newer_smgs_are_kept(tmp_path, counting):

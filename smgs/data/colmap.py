@@ -286,6 +286,11 @@ def colmap_sources(path: str | Path, images: str | None = None, rule: Resolution
     return ColmapSources(scene_dir, mdir, model, rule, folder_name, paths)
 
 
+ALPHA_NOTE = ("alpha is dropped: the ground truth is the files' RGB as stored, not composited, as 3DGS reads a "
+              "COLMAP scene (its 2023 code meant to multiply RGB by alpha, but its check tests the image height, "
+              "not the channel count; its 2024 code keeps RGB as stored and masks only the training render)")
+
+
 def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
                 factor: float | None = None, max_width: int | None = None, resample: str | None = None,
                 test_every: int | None = 8, model_dir: str | Path | None = None, with_points: bool = True,
@@ -306,13 +311,17 @@ def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRul
 
     def load_one(i: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         im, p = model.images[i], paths[i]
-        img = read_image(p)
+        img = read_image(p, keep_alpha=True)
+        if img.shape[2] == 4:   # the stored RGB is the ground truth, as 3DGS reads it (ALPHA_NOTE)
+            with_alpha.append(p.name)
+            img = img[..., :3]
         src = (img.shape[1], img.shape[0])
         check_aspect(p, src, (im.width, im.height))
         out = rule.target_size(*src)
         img = resize_image(img, out, rule.resample)
         return img, scale_intrinsics(im.K, (im.width, im.height), out), src
 
+    with_alpha: list[str] = []
     loaded = parallel_map(load_one, range(len(model.images)), workers)
     check_scene_scale([(p, src, (im.width, im.height)) for p, (_, _, src), im in zip(paths, loaded, model.images)])
     views = []
@@ -348,6 +357,8 @@ def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRul
         "n_test": len(test),
         "n_unregistered_skipped": model.n_unregistered,
         "n_points": 0 if model.points is None else int(len(model.points)),
+        "alpha_dropped": (f"{len(with_alpha)} of {len(views)} images have an alpha channel (e.g. "
+                          f"{sorted(with_alpha)[0]}); {ALPHA_NOTE}") if with_alpha else None,
     }
     if model.quaternion_note:
         info["quaternions_normalised"] = model.quaternion_note

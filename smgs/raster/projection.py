@@ -28,6 +28,7 @@ from smgs.camera import Camera
 from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension, use_cpu_kernel
 from smgs.raster.device_glue import to_device
+from smgs.raster.kernel_clock import kernel
 from smgs.raster.sh import eval_sh, num_sh_bases
 
 _CSRC = Path(__file__).parent / "csrc"
@@ -318,8 +319,9 @@ class _ProjectCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means3d, quats, scales, view: torch.Tensor, near_plane: float, eps2d: float,  # type: ignore[override]
                 sh0: torch.Tensor, rest: torch.Tensor, degree: int, clamp: bool):
-        ids, means2d, conics, depths, radii, colors = _JIT.module().forward(
-            means3d, quats, scales, view, near_plane, eps2d, K.SIGMA_EXTENT, sh0, rest, degree, clamp)
+        with kernel("projection+SH fwd"):
+            ids, means2d, conics, depths, radii, colors = _JIT.module().forward(
+                means3d, quats, scales, view, near_plane, eps2d, K.SIGMA_EXTENT, sh0, rest, degree, clamp)
         ctx.mark_non_differentiable(ids, radii)
         ctx.save_for_backward(means3d, quats, scales, ids, view, sh0, rest)
         ctx.args = (near_plane, eps2d)
@@ -333,9 +335,10 @@ class _ProjectCPU(torch.autograd.Function):
         means3d, quats, scales, ids, view, sh0, rest = ctx.saved_tensors
         none = means3d.new_empty(0)
         g = lambda t: none if t is None else t.contiguous()  # noqa: E731
-        g_means, g_quats, g_s, g_sh0, g_rest = _JIT.module().backward(
-            means3d, quats, scales, view, *ctx.args, ids, g(g_m2d), g(g_con), g(g_depth), sh0, rest, *ctx.sh,
-            g(g_col))
+        with kernel("projection+SH bwd"):
+            g_means, g_quats, g_s, g_sh0, g_rest = _JIT.module().backward(
+                means3d, quats, scales, view, *ctx.args, ids, g(g_m2d), g(g_con), g(g_depth), sh0, rest, *ctx.sh,
+                g(g_col))
         has_sh = sh0.dim() == 3
         return (g_means, g_quats, g_s, None, None, None, g_sh0 if has_sh else None,
                 g_rest if has_sh and rest.dim() == 3 else None, None, None)

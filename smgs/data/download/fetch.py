@@ -94,6 +94,9 @@ def open_remote(url: str, part: Path, manual: str, timeout: float = TIMEOUT_S) -
         if e.code == 416:
             part.unlink(missing_ok=True)
             return open_remote(url, part, manual, timeout)
+        if e.code >= 500:
+            raise NetworkError(f"{url} answered HTTP {e.code} {e.reason}, a failure of the server: try again "
+                               f"later. {manual}") from None
         raise RemoteChangedError(f"{url} answered HTTP {e.code} {e.reason}: the file has moved or is gone. "
                                  f"{manual}") from None
     except (urllib.error.URLError, OSError, HTTPException) as e:

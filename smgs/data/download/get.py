@@ -45,6 +45,8 @@ class Wanted:
 
 @dataclass(frozen=True)
 class DownloadRequest:
+    """What ``smgs download`` was asked for, as plain values (smgs_cli/download.py makes it)."""
+
     datasets: tuple[str, ...]
     root: Path
     scenes: tuple[str, ...] = ()      # empty: each dataset's scenes of the paper (configs/dataset)
@@ -222,7 +224,8 @@ def _local_archive(archive: Archive, group: list[Wanted], req: DownloadRequest, 
         manifest.check_size(archive.name, remote.total, f"the archive at {url}")
         total = remote.total or archive.approx_bytes or 0
         unpacked = total * len(group) // len(archive.members)
-        check_space(part.parent, (remote.remaining or total) + unpacked,
+        left = remote.remaining if remote.remaining is not None else total
+        check_space(part.parent, left + unpacked,
                     f"downloading {archive.name} and unpacking {len(group)} of its {len(archive.members)} scenes")
         log(f"downloading {url} ({human_size(remote.total) if remote.total else archive.size_text}) to {part}"
             + (f", resuming at {human_size(remote.offset)}" if remote.offset else ""))

@@ -70,7 +70,7 @@ TANDT_DB = Archive(
     name="tandt_db.zip", url="https://repo-sam.inria.fr/fungraph/3d-gaussian-splatting/datasets/input/tandt_db.zip",
     members={"train": "tandt/train/", "truck": "tandt/truck/",
              "drjohnson": "db/drjohnson/", "playroom": "db/playroom/"},
-    size_text="650 MB (the 3DGS README)", approx_bytes=650 * 10**6)
+    size_text="650 MB according to the 3DGS README", approx_bytes=650 * 10**6)
 
 # Registered images per scene, from published third-party tables that agree where they overlap:
 # jaesung-cs/splatstream's bench/README.md (bicycle 194, bonsai 292, counter 240, garden 185,
