@@ -8,6 +8,7 @@ them); a failing cell is recorded and the sweep goes on.
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import sys
@@ -134,22 +135,29 @@ def check_command_line(args: list[str]) -> str | None:
     if _given(args, "dataset.path") is not None and _given(args, "dataset") is None:
         return ("dataset.path names a scene folder of the dataset kinds that take one: add dataset=colmap "
                 "(images/ and sparse/0/) or dataset=transforms (transforms.json) before it")
+    method = _given(args, "method")
+    if method is not None and not (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
+        return unknown_method(method, "method")
     return None
 
 
-def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
-    """The grid's cells and their payloads (resolved configs and run directories)."""
-    from baselines.registry import get_spec
+def unknown_method(name: str, key: str) -> str:
+    """The one-block message for a method name (given as ``key``) that no config file or registry
+    knows, listing the known ones; a registered plugin method without a file runs through the grid."""
+    from baselines.registry import list_methods
 
-    grid = cfg.grid
-    for m in grid.methods:
-        get_spec(str(m))  # an unknown method stops here, naming the registered ones
-    names, scenes = grid_datasets(cfg, overrides)
-    datasets = {d: _scenes_of(d, overrides) for d in names}
-    seeds, seeds_of = grid_seeds(cfg, overrides)
-    cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds,
-                   scenes, seeds_of)
+    known = list_methods()
+    if name in known:
+        return f"{key}={name} is a plugin method without a file in configs/method/: run it with grid.methods=[{name}]"
+    return f"{key}={name} is no method; known methods: {', '.join(known)}"
+
+
+def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
+    """The grid's cells and their payloads (resolved configs and run directories). A grid that
+    cannot run (an unknown method or scene, an empty list, a bad seed count or folder name) stops
+    here in the one-block form, before anything runs."""
     try:
+        cells = grid_cells(cfg, overrides)
         check_path_names(str(cfg.experiment_name), cells)
     except ValueError as e:
         raise SystemExit(f"invalid config, nothing was run: {e}") from None
@@ -162,6 +170,29 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
             raise SystemExit(f"invalid config, nothing was run: {e}") from None
         payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg})
     return cells, payloads
+
+
+def grid_cells(cfg: DictConfig, overrides: list[str]) -> list[Cell]:
+    """The grid's cells; a ValueError names the key that makes them impossible."""
+    from baselines.registry import get_spec
+
+    grid = cfg.grid
+    for key in ("methods", "datasets", "budgets"):
+        if not grid[key]:
+            raise ValueError(f"grid.{key} is empty: the experiment would run nothing; list at least one")
+    for m in grid.methods:
+        try:
+            get_spec(str(m))
+        except KeyError:
+            raise ValueError(unknown_method(str(m), "grid.methods")) from None
+    names, scenes = grid_datasets(cfg, overrides)
+    datasets = {d: _scenes_of(d, overrides) for d in names}
+    seeds, seeds_of = grid_seeds(cfg, overrides)
+    unseeded = [str(m) for m in grid.methods if not seeds_of.get(str(m), seeds)]
+    if unseeded:
+        raise ValueError(f"no seed to run for {', '.join(unseeded)}: grid.seeds is empty; list at least one "
+                         "(grid.seeds=[0]) or give seeds=N")
+    return expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds, scenes, seeds_of)
 
 
 def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], dict[str, list[int]]]:
@@ -184,17 +215,45 @@ def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], d
 
 
 def _preflight(payloads: list[dict]) -> None:
-    """With on_missing=error, a missing dataset stops the experiment before anything runs."""
-    from protocols.cell_scene import check_available
+    """Every cell's scene before anything runs, each scene once: missing data stops the experiment
+    under on_missing=error; a scene that is there but cannot give a meaningful result (a folder that
+    is no scene, broken intrinsics or poses, an image listed twice, images too small) stops it
+    whatever on_missing says, naming the file and the fix."""
+    from protocols.cell_scene import check_available, scene_problem
 
-    problems = []
+    missing: dict[str, str] = {}
+    broken: list[str] = []
+    seen: set[str] = set()
     for p in payloads:
-        if p["config"].get("on_missing", "error") == "error":
-            err = check_available(p["config"])
-            if err and err not in problems:
-                problems.append(err)
-    if problems:
-        raise SystemExit("missing data (set on_missing=skip to run what exists):\n  " + "\n  ".join(problems))
+        c = p["config"]
+        key = json.dumps([c["dataset"], c.get("scene"), c.get("protocol"), c.get("data_root")], sort_keys=True,
+                         default=str)
+        if key in seen:
+            continue
+        seen.add(key)
+        err = check_available(c)
+        if err:
+            if c.get("on_missing", "error") == "error":
+                missing[key] = err
+            continue
+        problem = scene_problem(c)
+        if problem and problem not in broken:
+            broken.append(problem)
+    if broken:
+        raise SystemExit("invalid scene, nothing was run:\n  " + "\n  ".join(broken))
+    if missing:
+        raise SystemExit(missing_data_message(list(dict.fromkeys(missing.values())), len(missing) == len(seen)))
+
+
+def missing_data_message(problems: list[str], all_missing: bool) -> str:
+    """The message of an experiment stopped by missing data: where each was looked for, and what to
+    do, which is not on_missing=skip when no scene of the experiment is there (it would run nothing)."""
+    if all_missing:
+        advice = ("no scene of the experiment is there: put the data where the lines below say, or point at it "
+                  "with data_root=PATH (or dataset.path=PATH for your own scene)")
+    else:
+        advice = "set on_missing=skip to run the scenes that are there"
+    return f"missing data, nothing was run ({advice}):\n  " + "\n  ".join(problems)
 
 
 REMOTE_EXECUTORS = ("slurm",)
@@ -227,7 +286,7 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.executors import execute
     from protocols.progress import cell_status
 
-    from protocols.validate import validate_payloads
+    from protocols.validate import schedule_warning, validate_payloads
 
     cells, payloads = plan(cfg, overrides)
     if cfg.report:
@@ -240,6 +299,8 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     check_devices(payloads, str(cfg.executor.kind))
     validate_payloads(payloads)
     _preflight(payloads)
+    for warning in dict.fromkeys(w for w in map(schedule_warning, (p["config"] for p in payloads)) if w):
+        print(f"warning: {warning}", flush=True)
     ex = cfg.executor
     print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)
     summaries = execute(run_cell, payloads, kind=str(ex.kind), workers=int(ex.workers),
@@ -302,7 +363,7 @@ def cli() -> None:
         raise SystemExit(2)
     problem = check_command_line(sys.argv[1:])
     if problem:
-        print(f"error: {problem}", file=sys.stderr, flush=True)
+        print(f"error: invalid config, nothing was run: {problem}", file=sys.stderr, flush=True)
         raise SystemExit(2)
     signal.signal(signal.SIGTERM, on_sigterm)
     try:

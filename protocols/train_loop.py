@@ -205,6 +205,8 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
 def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
     """What the run uses and leaves out: the method's plan, then the harness's own stages."""
     plan = list(desc.get("plan", []))
+    if (scene.meta or {}).get("alpha_dropped"):
+        plan.append(f"scene images: {scene.meta['alpha_dropped']}")
     if not ev.consistency:
         plan.append("view consistency: off (eval.consistency=false)")
     elif not scene.trajectory and len(scene.test) < 2:

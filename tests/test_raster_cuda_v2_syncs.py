@@ -11,49 +11,12 @@ from __future__ import annotations
 
 import pytest
 import torch
-from cuda_v2_standin import StandInCompositing, StandInProjection
-from device_mix import CPU, OTHER, Remote, simulated_gpu
+from cuda_v2_standin import OnHost, StandInCompositing, StandInProjection
+from device_mix import CPU, OTHER, simulated_gpu
 
 from smgs.camera import Camera
 from smgs.raster import cuda_v2, projection_cuda, rasterize
 from smgs.raster.types import MODES, mode_flags
-
-
-class _OnHost:
-    """A stand-in binding for Remote tensors: computes on their host values with the dispatch mode
-    off, returns its outputs on the stand-in device, and counts the real binding's synchronisations."""
-
-    def __init__(self, base, mode, forward_sync: str | None = None, softmax_backward_sync: str | None = None):
-        self.base, self.mode = base, mode
-        self.forward_sync, self.softmax_backward_sync = forward_sync, softmax_backward_sync
-
-    def _on_host(self, fn, args):
-        from torch.utils._python_dispatch import _disable_current_modes
-
-        with _disable_current_modes():
-            out = fn(*[a.inner if type(a) is Remote else a for a in args])
-        return [Remote(t) for t in out]
-
-    def layout(self) -> list[int]:
-        return self.base.layout()
-
-    def forward(self, *args):
-        out = self._on_host(self.base.forward, args)
-        if self.forward_sync:
-            self.mode.sync(self.forward_sync)
-        return out
-
-    def backward(self, *args):
-        if self.softmax_backward_sync and any(a is True for a in args[-5:]) and _softmax(self.base, args):
-            self.mode.sync(self.softmax_backward_sync)
-        return self._on_host(self.base.backward, args)
-
-
-def _softmax(base, args) -> bool:
-    from cuda_v2_standin import params
-
-    names = [n for _, n in params(base.src, "backward_v2")]
-    return bool(dict(zip(names, args))["use_softmax"])
 
 
 def _splats(n: int, device, sh: bool) -> dict[str, torch.Tensor]:
@@ -87,8 +50,8 @@ def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_onc
     ref = _render(want, cam, mode, sh, backend="reference")
     (ref.rgb.mean() + ref.depth.mean()).backward()
     with simulated_gpu(monkeypatch) as m:
-        proj = _OnHost(StandInProjection(), m)
-        comp = _OnHost(StandInCompositing(), m, "binding forward: the pair count",
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count",
                        "binding backward: the most crowded pixel's count")
         monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
         monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)

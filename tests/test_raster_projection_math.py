@@ -91,8 +91,9 @@ def test_refactored_cpu_pass_equals_the_old_one_bit_for_bit(tmp_path):
     old_m, new_m = old.module(), new.module()
     for name, means, quats, scales, cam, eps in _scenes():
         view = projection._packed_view(projection._view(cam, torch.float32, torch.device("cpu")))
+        none = torch.empty(0)   # no colour stage
         fo = old_m.forward(means, quats, scales, view, 0.01, eps, 3.0)
-        fn = new_m.forward(means, quats, scales, view, 0.01, eps, 3.0)
+        fn = new_m.forward(means, quats, scales, view, 0.01, eps, 3.0, none, none, 0, True)
         assert fn[0].numel() > 100, name
         for a, b, what in zip(fn, fo, ("ids", "means2d", "conics", "depths", "radii")):
             assert a.dtype == b.dtype and torch.equal(a, b), f"{name}: {what} differs"
@@ -100,7 +101,7 @@ def test_refactored_cpu_pass_equals_the_old_one_bit_for_bit(tmp_path):
         g = torch.Generator().manual_seed(1)
         grads = [torch.randn(m, 2, generator=g), torch.randn(m, 3, generator=g), torch.randn(m, generator=g)]
         bo = old_m.backward(means, quats, scales, view, 0.01, eps, fn[0], *grads)
-        bn = new_m.backward(means, quats, scales, view, 0.01, eps, fn[0], *grads)
+        bn = new_m.backward(means, quats, scales, view, 0.01, eps, fn[0], *grads, none, none, 0, True, none)
         for a, b, what in zip(bn, bo, ("means3d", "quats", "scales")):
             assert torch.equal(a, b), f"{name}: gradient of {what} differs"
 

@@ -40,15 +40,22 @@ def test_statistics_skipped_only_while_the_cap_is_full():
 
 
 def test_stage_timings_only_when_profiling_and_the_step_is_the_same():
-    """``profile`` adds each stage's time (bench/train.py) and changes nothing the step computes."""
+    """``profile`` adds each stage's time and the compiled kernels' (bench/train.py, bench/train_step.py)
+    and changes nothing the step computes."""
     quiet, timed = _trainer("softmax_gs"), _trainer("softmax_gs")
     timed.profile = True
     for s in range(3):
         a, b = quiet.train_step(s), timed.train_step(s)
         assert a == b
-    assert set(quiet.timings.values()) == {0.0}
+    assert set(quiet.timings.values()) == {0.0} and quiet.kernel_clock.seconds == {}
     assert set(timed.timings) == {"render", "loss", "backward", "optim", "strategy"}
     assert all(v > 0 for v in timed.timings.values()), timed.timings
+    # the compiled kernels inside them (bench/train_step.py's split), each way
+    kernels = timed.kernel_clock.seconds
+    assert set(kernels) == {"projection+SH fwd", "projection+SH bwd", "composite fwd", "composite bwd", "loss"}
+    assert all(v > 0 for v in kernels.values()), kernels
+    assert kernels["composite fwd"] + kernels["projection+SH fwd"] < timed.timings["render"]
+    assert kernels["composite bwd"] + kernels["projection+SH bwd"] < timed.timings["backward"]
     torch.testing.assert_close(quiet.gaussians.means, timed.gaussians.means, rtol=0, atol=0)
 
 

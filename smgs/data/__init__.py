@@ -5,7 +5,7 @@ own (``smgs.data.colmap.load_colmap``, ``smgs.data.transforms.load_transforms``,
 ``smgs.data.procedural.make_procedural_scene``). Heavy imports (pycolmap, OpenCV) happen on use.
 """
 
-from smgs.data.datasets import (DATA_ROOT_ENV, DATASETS, GENERIC_RULES, DatasetSpec, get_dataset,
+from smgs.data.datasets import (DATA_ROOT_ENV, DATASETS, GENERIC_RULES, DatasetSpec, check_scene, get_dataset,
                                 load_dataset_scene, load_scene, resolve_data_root)
 from smgs.data.images import ResolutionRule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
@@ -28,5 +28,5 @@ def __getattr__(name: str):
 
 __all__ = ["Scene", "View", "camera_extent", "split_every", "ResolutionRule",
            "DatasetSpec", "DATASETS", "GENERIC_RULES", "DATA_ROOT_ENV", "get_dataset", "resolve_data_root",
-           "load_dataset_scene", "load_scene", "load_colmap", "load_transforms", "make_procedural_scene",
+           "load_dataset_scene", "load_scene", "check_scene", "load_colmap", "load_transforms", "make_procedural_scene",
            "DatasetNotFoundError", "SceneFormatError", "MissingImageError"]

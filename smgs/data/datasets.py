@@ -213,3 +213,35 @@ def load_scene(kind: str, *, path: str | Path | None = None, dataset: str | None
                                 f"{'test' if len(s.test) >= 2 else 'train'} cameras, {len(traj.dropped)} "
                                 f"near-static frames dropped: {len(s.trajectory)} frames")
     return s
+
+
+def check_scene(kind: str, *, path: str | Path | None = None, dataset: str | None = None, scene: str | None = None,
+                data_root: str | Path | None = None, rule: str | None = None, images: str | None = None,
+                factor: float | None = None, max_width: int | None = None, resample: str | None = None,
+                test_every: int | None = 8, n_views: int = 24, **unused: object) -> None:
+    """Raise what ``load_scene`` with the same arguments would raise about the scene's files, without
+    decoding an image (the other arguments of ``load_scene`` are accepted and not needed): a folder
+    that is no scene, a model or transforms file that cannot give meaningful views (broken
+    intrinsics or poses, an image listed twice), a missing image, a split with nothing to train on,
+    images under ``smgs.data.images.MIN_SIDE`` px. The runner calls it for every scene of a sweep
+    before any cell runs."""
+    if kind not in SCENE_KINDS:
+        raise ValueError(f"unknown scene kind {kind!r}; expected one of {', '.join(SCENE_KINDS)}")
+    if kind in DATASETS:
+        dataset, kind = kind, "colmap"
+    if kind == "procedural":
+        from smgs.data.procedural import check_procedural_split
+        check_procedural_split(n_views, test_every)
+        return
+    over = dict(images=images, factor=factor, max_width=max_width, resample=resample)
+    if kind == "colmap":
+        from smgs.data.colmap import colmap_sources
+        if dataset is not None:
+            spec = get_dataset(dataset)
+            colmap_sources(spec.scene_dir(resolve_data_root(data_root), str(scene)), rule=spec.rule(rule or "paper", str(scene)),
+                           test_every=test_every, with_points=False, **over)
+        else:
+            colmap_sources(path, rule=rule or "3dgs", test_every=test_every, with_points=False, **over)
+        return
+    from smgs.data.transforms import transforms_sources
+    transforms_sources(path, rule=rule or "3dgs", test_every=test_every, **over)

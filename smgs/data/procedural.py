@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.data.scene import Scene, View, camera_extent, split_description, split_every
+from smgs.data.scene import Scene, View, camera_extent, check_split, split_description, split_every
 
 _EPS = 1e-9
 
@@ -256,6 +256,16 @@ def sample_points(world: ProceduralWorld, cams: list[Camera], n_points: int, rng
     return p, c
 
 
+def view_name(i: int) -> str:
+    return f"view_{i:03d}"
+
+
+def check_procedural_split(n_views: int, test_every: int | None) -> None:
+    """The procedural scene's hold-out leaves a view to train on (``check_split``)."""
+    tr, _ = split_every([view_name(i) for i in range(n_views)], test_every)
+    check_split(f"the procedural scene (dataset.n_views={n_views})", n_views, len(tr), split_description(test_every))
+
+
 def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), seed: int = 0,
                           test_every: int | None = 8, n_points: int = 3000, supersample: int = 3,
                           n_trajectory: int = 48, pos_noise: float = 0.01, color_noise: float = 0.03) -> Scene:
@@ -264,6 +274,7 @@ def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), 
     trajectory of ``n_trajectory`` cameras on a ring between the training views' heights."""
     if n_views < 2:
         raise ValueError(f"n_views must be >= 2, got {n_views}")
+    check_procedural_split(n_views, test_every)
     width, height = int(size[0]), int(size[1])
     world = make_world(seed)
     rng = np.random.default_rng(seed + 1)
@@ -271,7 +282,7 @@ def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), 
     views = []
     for i, cam in enumerate(cams):
         img, _ = render_view(world, cam, supersample)
-        views.append(View(cam, torch.from_numpy(img), f"view_{i:03d}"))
+        views.append(View(cam, torch.from_numpy(img), view_name(i)))
     tr, te = split_every([v.name for v in views], test_every)
     pts, cols = sample_points(world, cams, n_points, rng, pos_noise, color_noise)
     traj = ring_cameras(n_trajectory, width, height, height_amp=0.0, phase=math.pi / n_views) if n_trajectory else None

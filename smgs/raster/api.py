@@ -13,9 +13,9 @@ from smgs.raster import constants as K
 from smgs.raster.composite_inputs import CompositeSettings, Splats2D, composite_settings
 from smgs.raster.cuda_v2 import kernel_choice
 from smgs.raster.device_glue import lean, to_device
-from smgs.raster.projection import VIEW_FLOATS, host_view, project_gaussians
+from smgs.raster.projection import ShColours, host_view, project_gaussians
 from smgs.raster.ray_depth import check_sort, ray_depth
-from smgs.raster.sh import eval_sh
+from smgs.raster.sh import num_sh_bases
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats
 
 # name -> (module, function); every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
@@ -271,15 +271,36 @@ def _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, ba
     return [("opacities", opacities), *needed, ("background", background), ("reg_values", reg_values)]
 
 
-def _sh_degree(sh_degree: int | None, colors_or_sh: torch.Tensor) -> int | None:
-    """``sh_degree`` after rasterize's shape rule for ``colors_or_sh``."""
+def _sh_degree(sh_degree: int | None, colors_or_sh: torch.Tensor, sh_rest: torch.Tensor | None = None) -> int | None:
+    """``sh_degree`` after rasterize's shape rule for ``colors_or_sh`` (and ``sh_rest``)."""
     if sh_degree is None and colors_or_sh.dim() != 2:
         raise ValueError("colors_or_sh without sh_degree must be [N,C] colours")
     if sh_degree is not None and colors_or_sh.dim() != 3:
         raise ValueError("colors_or_sh with sh_degree must be [N,K,C] SH coefficients")
     if sh_degree is not None and not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree must be 0..3, got {sh_degree}")
+    if sh_rest is None:
+        if sh_degree is not None and colors_or_sh.shape[1] < num_sh_bases(sh_degree):
+            raise ValueError(f"sh_degree {sh_degree} needs {num_sh_bases(sh_degree)} SH coefficients, "
+                             f"colors_or_sh has {colors_or_sh.shape[1]}")
+        return sh_degree
+    if sh_degree is None:
+        raise ValueError("sh_rest (the SH coefficients after the first) needs sh_degree")
+    n, _, c = colors_or_sh.shape
+    if colors_or_sh.shape[1] != 1 or sh_rest.dim() != 3 or sh_rest.shape[0] != n or sh_rest.shape[2] != c:
+        raise ValueError(f"with sh_rest, colors_or_sh must be [N,1,C] (the first SH coefficient) and sh_rest "
+                         f"[N,K-1,C]; got {tuple(colors_or_sh.shape)} and {tuple(sh_rest.shape)}")
+    if 1 + sh_rest.shape[1] < num_sh_bases(sh_degree):
+        raise ValueError(f"sh_degree {sh_degree} needs {num_sh_bases(sh_degree)} SH coefficients, "
+                         f"colors_or_sh and sh_rest have {1 + sh_rest.shape[1]}")
     return sh_degree
+
+
+def _used_rest(sh_rest: torch.Tensor | None, sh_degree: int | None) -> list[tuple[str, torch.Tensor]]:
+    """The coefficients of ``sh_rest`` the degree reads (a view), named for the input checks."""
+    if sh_rest is None or sh_degree is None:
+        return []
+    return [("sh_rest", sh_rest[:, :num_sh_bases(sh_degree) - 1])]
 
 
 def rasterize(
@@ -308,11 +329,16 @@ def rasterize(
     leaders: bool = False,
     k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
     cuda_kernels: str | None = None,
+    sh_rest: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
 
     quats are wxyz and normalised here; colors_or_sh is [N,C] colours, or [N,K,C] SH coefficients
     evaluated at ``sh_degree`` (+0.5 and clamped at 0 as 3DGS, unless ``clamp_sh_colors=False``).
+    ``sh_rest``: the SH coefficients in two parts, as a trainer keeps them (3DGS's features_dc and
+    features_rest), read without joining them: colors_or_sh [N,1,C] the first, sh_rest [N,K-1,C] the
+    others. On float32 CPU tensors the colours are made in the compiled projection, for the
+    Gaussians it keeps.
     ``extras`` of the output hold the projection (``ids``, ``means2d``, ``radii``), so a
     densification strategy can read the 2D mean gradients (call ``retain_grad`` on ``means2d``).
     ``sort``: ``"global"`` orders all splats by the view depth of their centres (3DGS);
@@ -334,7 +360,7 @@ def rasterize(
         if t.shape != shape:
             raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
     checks.float_dtypes([("means3d", means3d), ("quats", quats), ("scales", scales), ("opacities", opacities),
-                         ("colors_or_sh", colors_or_sh)])
+                         ("colors_or_sh", colors_or_sh), *([("sh_rest", sh_rest)] if sh_rest is not None else [])])
     device = means3d.device
     lean_glue = lean(device)
     on_cuda = device.type != "cpu" and backend in ("auto", "cuda") \
@@ -345,27 +371,35 @@ def rasterize(
     # with the lean glue: read after the render)
     st = composite_settings(camera.width, camera.height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope,
                             leaders)
+    sh_degree = _sh_degree(sh_degree, colors_or_sh, sh_rest)
+    if sh_rest is not None and sh_rest.device != device:
+        raise TypeError(f"sh_rest is on {sh_rest.device} but means3d is on {device}; give every input one device")
     more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
                                st) if fused else []
     chk = checks.InputChecks(defer=lean_glue)
     chk.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
-                ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more], pos_inf_ok=("gamma",))
+                *_used_rest(sh_rest, sh_degree), ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more],
+               pos_inf_ok=("gamma",))
     chk.non_negative("scales", scales)
+    sh = None if sh_degree is None else ShColours(colors_or_sh, sh_rest, sh_degree, clamp_sh_colors)
     if fused:
         from smgs.raster.cuda_v2 import rasterize_fused
 
-        return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, colors_or_sh, camera, alpha, beta,
-                        gamma, background, reg_values, st, _sh_degree(sh_degree, colors_or_sh), near_plane, eps2d,
-                        clamp_sh_colors)
-    _sh_degree(sh_degree, colors_or_sh)
-    # The camera packed on the host (with the centre where SH needs it) and copied over once.
-    view = to_device(host_view(camera, means3d.dtype, center=sh_degree is not None), device)
+        coefs = colors_or_sh if sh is None or sh_rest is None else sh.coefficients()
+        return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, coefs, camera, alpha, beta,
+                        gamma, background, reg_values, st, sh_degree, near_plane, eps2d, clamp_sh_colors)
+    # The camera packed on the host (with the centre where SH needs it) and copied over once per
+    # camera (kept on it until it changes: Camera.memo).
+    center = sh is not None
+    view = camera.memo(("view", means3d.dtype, center, device),
+                       lambda: to_device(host_view(camera, means3d.dtype, center=center), device))
     # Lean glue: no compaction (a culled Gaussian keeps its row and renders at opacity 0), so no
     # host wait; on the CUDA backend's plain path only (the host paths take compacted splats).
     dense = lean_glue and on_cuda and sort == "global" and not leaders
-    # The reference backend is the oracle: pure PyTorch throughout, so its projection is too.
+    # The reference backend is the oracle: pure PyTorch throughout, so its projection is too. The
+    # colours from SH are made with the projection (in its compiled pass where that runs).
     proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
-                             fused=False if backend == "reference" else None, view=view, dense=dense)
+                             fused=False if backend == "reference" else None, view=view, dense=dense, sh=sh)
     ids = proj.ids
     if dense:
         pick = (lambda t: t)
@@ -373,14 +407,7 @@ def rasterize(
         pick = (lambda t: None if t is None else t.index_select(0, ids))
     else:
         pick = (lambda t: None if t is None else t[ids])
-    if sh_degree is None:
-        colors = pick(colors_or_sh)
-    else:
-        dirs = pick(means3d) - view[VIEW_FLOATS:]
-        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        colors = eval_sh(sh_degree, pick(colors_or_sh), dirs) + 0.5
-        if clamp_sh_colors:
-            colors = colors.clamp_min(0.0)
+    colors = pick(colors_or_sh) if sh is None else proj.colors
     # a culled row of the dense projection reaches no pixel at opacity 0 (every backend skips a
     # splat under 1/255), so it renders as if absent
     opac = opacities * proj.visible if dense else pick(opacities)

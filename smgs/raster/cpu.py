@@ -28,6 +28,7 @@ from smgs.raster import constants as K
 from smgs.raster.composite_inputs import CompositeSettings, Splats2D
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.kernel_args import kernel_grads, kernel_inputs, kernel_output, no_splats, output_grads
+from smgs.raster.kernel_clock import kernel
 from smgs.raster.types import RayDepth, RenderOutput
 
 _CSRC = Path(__file__).parent / "csrc"
@@ -63,11 +64,12 @@ class _RasterizeCPU(torch.autograd.Function):
         opt = lambda t: empty if t is None else t  # noqa: E731
         st = settings
         nthreads = torch.get_num_threads()
-        (rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, ids, pk, box, toff, tlist, soff,
-         spos, list_end) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma),
-                                       opt(background), opt(reg_values), st.width, st.height, st.use_gef,
-                                       st.use_softmax, st.k_max, st.solved, st.reg_depth_scale, nthreads, st.t_min,
-                                       st.patch)
+        with kernel("composite fwd"):
+            (rgb, alpha_out, depth, reg, cnt, t_final, last, pairs, ids, pk, box, toff, tlist, soff,
+             spos, list_end) = ext.forward(means2d, conics, opacities, colors, depths, opt(alpha), opt(beta),
+                                           opt(gamma), opt(background), opt(reg_values), st.width, st.height,
+                                           st.use_gef, st.use_softmax, st.k_max, st.solved, st.reg_depth_scale,
+                                           nthreads, st.t_min, st.patch)
         ctx.save_for_backward(alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos,
                               opt(background))
         ctx.settings = st
@@ -84,10 +86,11 @@ class _RasterizeCPU(torch.autograd.Function):
         alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff, spos, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth, g_reg = output_grads(ctx, g_rgb, g_alpha, g_depth, g_reg, alpha_out)
-        grads = extension().backward(
-            g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
-            spos, bg, ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax,
-            st.k_max, st.solved, st.reg_depth_scale, ctx.nthreads, st.patch)
+        with kernel("composite bwd"):
+            grads = extension().backward(
+                g_rgb, g_alpha, g_depth, g_reg, alpha_out, depth, t_final, last, ids, pk, box, toff, tlist, soff,
+                spos, bg, ctx.n_splats, ctx.n_channels, ctx.n_reg, st.width, st.height, st.use_gef, st.use_softmax,
+                st.k_max, st.solved, st.reg_depth_scale, ctx.nthreads, st.patch)
         return kernel_grads(ctx, grads, g_rgb, t_final)
 
 
@@ -104,11 +107,12 @@ class _RasterizePixelCPU(torch.autograd.Function):
         empty = means2d.new_empty(0)
         opt = lambda t: empty if t is None else t  # noqa: E731
         st = settings
-        (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos, order,
-         order_off, leaders, list_end) = extension().forward_pixel(
-            means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background), coefs,
-            intr, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved, torch.get_num_threads(),
-            st.t_min, window, any(ctx.needs_input_grad[:9]), lead_alpha, st.patch)
+        with kernel("composite fwd"):
+            (rgb, alpha_out, depth, cnt, t_final, pairs, ids, pk, box, toff, tlist, soff, spos, order,
+             order_off, leaders, list_end) = extension().forward_pixel(
+                means2d, conics, opacities, colors, depths, opt(alpha), opt(beta), opt(gamma), opt(background),
+                coefs, intr, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
+                torch.get_num_threads(), st.t_min, window, any(ctx.needs_input_grad[:9]), lead_alpha, st.patch)
         ctx.save_for_backward(alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off,
                               opt(background))
         ctx.settings = st
@@ -122,10 +126,11 @@ class _RasterizePixelCPU(torch.autograd.Function):
         alpha_out, depth, cnt, t_final, ids, pk, box, toff, tlist, soff, spos, order, order_off, bg = ctx.saved_tensors
         st = ctx.settings
         g_rgb, g_alpha, g_depth = (g.contiguous().float() for g in (g_rgb, g_alpha, g_depth))
-        grads = extension().backward_pixel(
-            g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, ids, pk, box, toff, tlist, soff, spos, order, order_off,
-            bg, ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax, st.k_max, st.solved,
-            torch.get_num_threads(), st.t_min, st.patch)
+        with kernel("composite bwd"):
+            grads = extension().backward_pixel(
+                g_rgb, g_alpha, g_depth, alpha_out, depth, cnt, ids, pk, box, toff, tlist, soff, spos, order,
+                order_off, bg, ctx.n_splats, ctx.n_channels, st.width, st.height, st.use_gef, st.use_softmax,
+                st.k_max, st.solved, torch.get_num_threads(), st.t_min, st.patch)
         # kernel_grads' order ends with reg_values (none here): then coefs, intr, settings, window,
         # lead_alpha
         return kernel_grads(ctx, grads, g_rgb, t_final, n_settings=0)[:-1] + (None,) * 5

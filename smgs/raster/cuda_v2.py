@@ -107,6 +107,7 @@ def composite(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     projection's culled Gaussians)."""
     if splats.n == 0:   # nothing to composite (kernel_args.no_splats, as the default kernels' wrapper)
         return no_splats(splats, st)
+    cuda.check_splat_count(splats.n)
     args = kernel_inputs(splats, st)
     r = None if splats.radii is None else splats.radii.detach().contiguous()
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDAv2.apply(*args, r, st, ext)
@@ -185,6 +186,7 @@ def composite_pixel(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutpu
     window of ``st.window`` splats (``splats.ray_depth``), or (``ray_depth`` None) the global order
     for the leading-splat map (zero peak-depth coefficients make every key the centre depth, which a
     window of 1 keeps in order), as ``cpu._per_pixel``."""
+    cuda.check_splat_count(splats.n)
     args = kernel_inputs(splats, st)
     ray_depth = splats.ray_depth
     what = "sort='per_pixel'" if ray_depth is not None else "leaders=True"

@@ -26,19 +26,20 @@ def kernel_inputs(sp: Splats2D, st: CompositeSettings) -> tuple[torch.Tensor | N
 
 
 def output_grads(ctx, g_rgb, g_alpha, g_depth, g_reg, alpha_out: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """The image gradients as the kernels read them: contiguous float32, zeros where the loss did not
-    use an output (a Function with ``set_materialize_grads(False)`` gets None there: autograd then
-    makes no zeros for the outputs that carry none, the counters and the final transmittance), and
-    an empty ``g_reg`` where nothing was regularised."""
-    zeros = lambda *shape: alpha_out.new_zeros(shape)  # noqa: E731
+    """The image gradients as the CPU kernel reads them: contiguous float32; an empty ``g_alpha`` /
+    ``g_depth`` where the loss did not use that output (a Function with ``set_materialize_grads(False)``
+    gets None there, and the kernel reads an empty one as zero: a training loss of the colours alone
+    makes no [H, W] zeros for them, nor for the counters and the final transmittance), zeros where
+    it did not use the colours, and an empty ``g_reg`` where nothing was regularised."""
     h, w = alpha_out.shape
-    g_rgb = zeros(h, w, ctx.n_channels) if g_rgb is None else g_rgb.contiguous().float()
-    g_alpha = zeros(h, w) if g_alpha is None else g_alpha.contiguous().float()
-    g_depth = zeros(h, w) if g_depth is None else g_depth.contiguous().float()
+    none = alpha_out.new_empty(0)
+    g_rgb = alpha_out.new_zeros(h, w, ctx.n_channels) if g_rgb is None else g_rgb.contiguous().float()
+    g_alpha = none if g_alpha is None else g_alpha.contiguous().float()
+    g_depth = none if g_depth is None else g_depth.contiguous().float()
     if not ctx.n_reg:
-        g_reg = alpha_out.new_empty(0)
+        g_reg = none
     else:
-        g_reg = zeros(h, w, 1 + 2 * ctx.n_reg) if g_reg is None else g_reg.contiguous().float()
+        g_reg = alpha_out.new_zeros(h, w, 1 + 2 * ctx.n_reg) if g_reg is None else g_reg.contiguous().float()
     return g_rgb, g_alpha, g_depth, g_reg
 
 

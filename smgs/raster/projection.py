@@ -8,6 +8,11 @@ On float32 CPU tensors the same math runs as one compiled pass each way (``csrc/
 built just in time like the CPU renderer): even as one node, the ~40 forward and ~50 backward
 tensor ops cost more than the arithmetic, at 4 Gaussians and at 10K. ``_Project`` stays the oracle
 (tests/test_raster_projection_cpu.py) and the path for other dtypes and devices.
+
+The view-dependent colours (``ShColours``: spherical harmonics along the view directions, + 0.5,
+clamped) are part of that compiled pass, for the kept Gaussians only, with their adjoint in its
+backward: in PyTorch (``sh.eval_sh``, the oracle and the other devices' path) each of the 16
+coefficients is a select whose backward zero-fills the whole [N, 16, 3] tensor.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ from smgs.camera import Camera
 from smgs.raster import constants as K
 from smgs.raster.cpu_build import cpu_extension, use_cpu_kernel
 from smgs.raster.device_glue import to_device
+from smgs.raster.kernel_clock import kernel
+from smgs.raster.sh import eval_sh, num_sh_bases
 
 _CSRC = Path(__file__).parent / "csrc"
 
@@ -39,6 +46,29 @@ class Projected:
     # dense projection (``project_gaussians(dense=True)``): M = N, ids = arange(N), and this [N] bool
     # marks the rows that survived culling (the others have radius 0 and render at opacity 0)
     visible: torch.Tensor | None = None
+    colors: torch.Tensor | None = None   # [M, C] where ``project_gaussians`` was given ``ShColours``
+
+
+@dataclass(frozen=True)
+class ShColours:
+    """The view-dependent colours to make with the projection: real spherical harmonics of
+    ``degree`` (``sh.eval_sh``) along the unit directions from the camera centre to the means, + 0.5,
+    clamped at 0 where ``clamp`` (3DGS). The coefficients come as the trainer keeps them, in two
+    parts read in place (no ``torch.cat`` per step): ``sh0`` [N, 1, C] (3DGS's features_dc) and
+    ``rest`` [N, K−1, C] (features_rest); or as one tensor ``sh0`` [N, K, C] with ``rest`` None.
+    K ≥ (degree + 1)²; the coefficients past the degree get zero gradients."""
+
+    sh0: torch.Tensor
+    rest: torch.Tensor | None
+    degree: int
+    clamp: bool = True
+
+    def coefficients(self) -> torch.Tensor:
+        """The [N, (degree + 1)², C] coefficients the degree uses, as one tensor (the PyTorch path)."""
+        nb = num_sh_bases(self.degree)
+        if self.rest is None:
+            return self.sh0[:, :nb]
+        return self.sh0 if nb == 1 else torch.cat([self.sh0, self.rest[:, :nb - 1]], dim=1)
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -281,34 +311,59 @@ def fused_available() -> bool:
 
 
 class _ProjectCPU(torch.autograd.Function):
-    """``_Project`` in one compiled pass each way, float32 CPU tensors. The backward recomputes the
-    per-Gaussian intermediates, so only the inputs and ``ids`` are saved."""
+    """``_Project`` in one compiled pass each way, float32 CPU tensors, with the colours of ``ShColours``
+    (``sh0``, ``rest``: an empty tensor where there is none) for the kept rows where ``sh0`` is given.
+    The backward recomputes the per-Gaussian intermediates, so only the inputs and ``ids`` are saved;
+    gradients the loss did not reach are not made (``set_materialize_grads(False)``) but read as zero."""
 
     @staticmethod
-    def forward(ctx, means3d, quats, scales, view: torch.Tensor, near_plane: float, eps2d: float):  # type: ignore[override]
-        ids, means2d, conics, depths, radii = _JIT.module().forward(
-            means3d, quats, scales, view, near_plane, eps2d, K.SIGMA_EXTENT)
+    def forward(ctx, means3d, quats, scales, view: torch.Tensor, near_plane: float, eps2d: float,  # type: ignore[override]
+                sh0: torch.Tensor, rest: torch.Tensor, degree: int, clamp: bool):
+        with kernel("projection+SH fwd"):
+            ids, means2d, conics, depths, radii, colors = _JIT.module().forward(
+                means3d, quats, scales, view, near_plane, eps2d, K.SIGMA_EXTENT, sh0, rest, degree, clamp)
         ctx.mark_non_differentiable(ids, radii)
-        ctx.save_for_backward(means3d, quats, scales, ids, view)
+        ctx.save_for_backward(means3d, quats, scales, ids, view, sh0, rest)
         ctx.args = (near_plane, eps2d)
-        ctx.set_materialize_grads(False)   # no zero gradients made for ids and radii
-        return ids, means2d, conics, depths, radii
+        ctx.sh = (degree, clamp)
+        ctx.set_materialize_grads(False)   # no zero gradients made for ids, radii or unused outputs
+        return ids, means2d, conics, depths, radii, colors
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii):  # type: ignore[override]
-        means3d, quats, scales, ids, view = ctx.saved_tensors
-        m = ids.shape[0]
-        g = lambda t, *shape: means3d.new_zeros(shape) if t is None else t.contiguous()  # noqa: E731
-        g_means, g_quats, g_s = _JIT.module().backward(
-            means3d, quats, scales, view, *ctx.args, ids, g(g_m2d, m, 2), g(g_con, m, 3), g(g_depth, m))
-        return g_means, g_quats, g_s, None, None, None
+    def backward(ctx, _g_ids, g_m2d, g_con, g_depth, _g_radii, g_col):  # type: ignore[override]
+        means3d, quats, scales, ids, view, sh0, rest = ctx.saved_tensors
+        none = means3d.new_empty(0)
+        g = lambda t: none if t is None else t.contiguous()  # noqa: E731
+        with kernel("projection+SH bwd"):
+            g_means, g_quats, g_s, g_sh0, g_rest = _JIT.module().backward(
+                means3d, quats, scales, view, *ctx.args, ids, g(g_m2d), g(g_con), g(g_depth), sh0, rest, *ctx.sh,
+                g(g_col))
+        has_sh = sh0.dim() == 3
+        return (g_means, g_quats, g_s, None, None, None, g_sh0 if has_sh else None,
+                g_rest if has_sh and rest.dim() == 3 else None, None, None)
+
+
+def _colours_torch(sh: ShColours, means3d: torch.Tensor, ids: torch.Tensor, center: torch.Tensor,
+                   dense: bool) -> torch.Tensor:
+    """The colours of ``sh`` for the rows ``ids`` (every row where ``dense``) in PyTorch: the oracle's
+    formula (``sh.eval_sh``), the path of other dtypes and devices."""
+    coefs = sh.coefficients()
+    if not dense:
+        coefs, means3d = coefs.index_select(0, ids), means3d.index_select(0, ids)
+    dirs = None
+    if sh.degree > 0:   # degree 0 has no view dependence
+        dirs = means3d - center
+        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    colors = eval_sh(sh.degree, coefs, dirs) + 0.5
+    return colors.clamp_min(0.0) if sh.clamp else colors
 
 
 def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                       camera: Camera, near_plane: float = K.NEAR_PLANE,
                       eps2d: float = K.EPS2D, fused: bool | None = None,
-                      view: torch.Tensor | None = None, dense: bool = False) -> Projected:
+                      view: torch.Tensor | None = None, dense: bool = False,
+                      sh: ShColours | None = None) -> Projected:
     """EWA splatting (Zwicker et al.; 3DGS): Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I.
 
     Culls Gaussians in front of the near plane and those whose 3σ box misses the image (the box
@@ -319,21 +374,34 @@ def project_gaussians(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.
     ``fused``: None uses the compiled CPU pass wherever it applies (float32 CPU tensors, the
     extension available), True requires it (RuntimeError naming why not), False always uses the
     PyTorch path. ``view``: the camera already packed on the Gaussians' device (``host_view``, then
-    ``to_device``; ``rasterize`` packs the SH centre with it), else packed here. ``dense``: keep
+    ``to_device``; with the centre where ``sh`` is given), else packed here. ``dense``: keep
     every Gaussian's row (``Projected.visible`` marks the survivors; the PyTorch path, for the lean
-    glue of ``smgs.raster.device_glue``): no host synchronisation.
+    glue of ``smgs.raster.device_glue``): no host synchronisation. ``sh``: the kept rows' colours
+    too (``Projected.colors``), in the compiled pass where it runs.
     """
     if view is None:
-        view = to_device(host_view(camera, means3d.dtype), means3d.device)
+        view = to_device(host_view(camera, means3d.dtype, center=sh is not None), means3d.device)
+    if sh is not None and view.numel() <= VIEW_FLOATS:
+        raise ValueError("project_gaussians: colours from SH need the camera centre in the packed view "
+                         "(host_view(camera, dtype, center=True))")
     if dense:
         ids, means2d, conics, depths, radii, visible = _ProjectDense.apply(
             means3d, quats, scales, _view_of(view), float(near_plane), float(eps2d))
-        return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii, visible=visible)
-    if use_cpu_kernel(_JIT, fused, (means3d, quats, scales), "means3d, quats, scales"):
-        packed = view[:VIEW_FLOATS]
-        out = _ProjectCPU.apply(means3d, quats, scales, packed if packed.is_contiguous() else packed.contiguous(),
-                                float(near_plane), float(eps2d))
-    else:
-        out = _Project.apply(means3d, quats, scales, _view_of(view), float(near_plane), float(eps2d))
-    ids, means2d, conics, depths, radii = out
-    return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii)
+        colors = None if sh is None else _colours_torch(sh, means3d, ids, view[VIEW_FLOATS:], dense=True)
+        return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii, visible=visible,
+                         colors=colors)
+    tensors = (means3d, quats, scales) + (() if sh is None else tuple(t for t in (sh.sh0, sh.rest) if t is not None))
+    if use_cpu_kernel(_JIT, fused, tensors, "means3d, quats, scales" + ("" if sh is None else " and SH coefficients")):
+        none = means3d.new_empty(0)
+        packed = view if sh is not None else view[:VIEW_FLOATS]
+        sh_args = (none, none, 0, True) if sh is None else \
+            (sh.sh0, none if sh.rest is None else sh.rest, int(sh.degree), bool(sh.clamp))
+        ids, means2d, conics, depths, radii, colors = _ProjectCPU.apply(
+            means3d, quats, scales, packed if packed.is_contiguous() else packed.contiguous(), float(near_plane),
+            float(eps2d), *sh_args)
+        return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii,
+                         colors=None if sh is None else colors)
+    ids, means2d, conics, depths, radii = _Project.apply(means3d, quats, scales, _view_of(view), float(near_plane),
+                                                         float(eps2d))
+    colors = None if sh is None else _colours_torch(sh, means3d, ids, view[VIEW_FLOATS:], dense=False)
+    return Projected(ids=ids, means2d=means2d, conics=conics, depths=depths, radii=radii, colors=colors)

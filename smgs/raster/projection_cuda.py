@@ -65,9 +65,10 @@ def extension():
 
 def camera_floats(camera: Camera) -> list[float]:
     """The 25 host floats the kernels take: ``projection.host_view`` with the camera centre, in
-    float32 (rw, tw, f, c, lo, hi, size, centre; the centre is the SH directions' origin). A camera
-    on a device is read back (a synchronisation); the trainer's cameras live on the host."""
-    return host_view(camera, torch.float32, center=True).tolist()
+    float32 (rw, tw, f, c, lo, hi, size, centre; the centre is the SH directions' origin), made once
+    per camera (``Camera.memo``). A camera on a device is read back (a synchronisation); the
+    trainer's cameras live on the host."""
+    return list(camera.memo(("floats",), lambda: host_view(camera, torch.float32, center=True).tolist()))
 
 
 @dataclass

@@ -8,14 +8,68 @@ every run. Densification budgets are kinds (``BUDGETS``: what each sets, its gra
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Callable, Literal, TypeVar
+from typing import Any, Callable, ClassVar, Literal, TypeVar
 
 from smgs.raster import constants as K
 
 T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric setting may take: a finite number between ``lo`` and ``hi`` (each bound
+    open or closed, None for none); ``optional``: None is allowed too. A section lists its ranges in
+    ``RANGES`` (field -> Range) and ``from_dict`` refuses a value outside, naming the key: a learning
+    rate of nan, an opacity of 1 (an infinite logit) or a negative interval fails before a step runs,
+    not at step 0 with the renderer's or the optimiser's words."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    optional: bool = False
+    integer: bool = False
+
+    def describe(self) -> str:
+        kind = "a whole number" if self.integer else "a finite number"
+        if self.lo is not None and self.hi is not None:
+            bounds = f" in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+        elif self.lo is not None:
+            bounds = f" {'>' if self.lo_open else '≥'} {self.lo:g}"
+        elif self.hi is not None:
+            bounds = f" {'<' if self.hi_open else '≤'} {self.hi:g}"
+        else:
+            bounds = ""
+        return kind + bounds + (" (or null)" if self.optional else "")
+
+    def holds(self, value: Any) -> bool:
+        if value is None:
+            return self.optional
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return False
+        if self.integer and not float(value).is_integer():
+            return False
+        lo_ok = self.lo is None or (value > self.lo if self.lo_open else value >= self.lo)
+        return lo_ok and (self.hi is None or (value < self.hi if self.hi_open else value <= self.hi))
+
+
+def range_problems(obj: Any, where: str = "") -> list[str]:
+    """``key=value: must be …`` for every field of ``obj`` outside its section's ``RANGES``."""
+    out = []
+    for name, rng in getattr(type(obj), "RANGES", {}).items():
+        value = getattr(obj, name)
+        if not rng.holds(value):
+            out.append(f"{where + '.' if where else ''}{name}={value!r}: must be {rng.describe()}")
+    return out
+
+
+RATE = Range(0)                      # a learning rate (0 freezes the parameter)
+COUNT = Range(1, integer=True)       # an interval or a count of steps or things
+FRACTION = Range(0, 1, lo_open=True, hi_open=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -33,6 +87,9 @@ class ParamInit:
 
     init: float
     activation: Literal["exp", "softplus"] = "exp"
+
+    # both activations reach 0 only in the limit: the raw value of 0 would be -inf
+    RANGES: ClassVar[dict[str, Range]] = {"init": Range(0, lo_open=True)}
 
 
 @dataclass
@@ -100,6 +157,13 @@ class GaussianConfig:
     # nothing (test PSNR 5 dB).
     random_extent: float = 0.53
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "init_opacity": FRACTION,         # stored as its logit: ±inf at 0 and 1
+        "max_sh_degree": Range(0, K.MAX_SH_DEGREE, integer=True),
+        "n_flat": COUNT, "n_random": COUNT, "flat_scale": Range(0, lo_open=True),
+        "random_extent": Range(0, lo_open=True), "flat_spacing": Range(0), "flat_jitter": Range(0),
+    }
+
 
 # --------------------------------------------------------------------------------------------
 # Optimiser
@@ -127,6 +191,13 @@ class OptimConfig:
     gamma_lr: float = 4e-4
     eps: float = 1e-15
     betas: tuple[float, float] = (0.9, 0.999)
+
+    RANGES: ClassVar[dict[str, Range]] = {
+        **{f: RATE for f in ("means_lr", "means_lr_final", "sh0_lr", "shN_lr", "opacities_lr", "scales_lr",
+                             "quats_lr", "alpha_lr", "beta_lr", "gamma_lr")},
+        "means_lr_delay_mult": Range(0), "means_lr_delay_steps": Range(0, integer=True),
+        "means_lr_steps": Range(1, integer=True, optional=True), "eps": Range(0, lo_open=True),
+    }
 
 
 HPARAMS: dict[str, OptimConfig] = {
@@ -164,6 +235,9 @@ class LossConfig:
     lambda_gamma_var: float = 0.01
     reg_depth_scale_rel: float = 0.01
     reg_space: Literal["log", "value"] = "log"
+
+    RANGES: ClassVar[dict[str, Range]] = {"lambda_dssim": Range(0, 1), "lambda_beta_var": Range(0),
+                                          "lambda_gamma_var": Range(0), "reg_depth_scale_rel": Range(0, lo_open=True)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -220,6 +294,16 @@ class DensifyConfig:
     mcmc_gate_t: float = 0.005
     mcmc_opacity_reg: float = 0.01
     mcmc_scale_reg: float = 0.01
+
+    RANGES: ClassVar[dict[str, Range]] = {
+        "grow_grad2d": Range(0), "cap": Range(1, integer=True, optional=True), "percent_dense": Range(0, lo_open=True),
+        "split_n": COUNT, "prune_opacity": Range(0, 1, hi_open=True),
+        "size_prune": Range(0, lo_open=True, optional=True), "prune_screen_px": Range(0, lo_open=True, optional=True),
+        "refine_start": Range(0, integer=True), "refine_stop": Range(0, integer=True), "refine_every": COUNT,
+        "reset_every": Range(1, integer=True, optional=True), "reset_value": FRACTION,
+        **{f: Range(0) for f in ("mcmc_grow_rate", "mcmc_noise_lr", "mcmc_gate_k", "mcmc_gate_t",
+                                 "mcmc_opacity_reg", "mcmc_scale_reg")},
+    }
 
 
 # The budget kinds and what each sets: the one home of the paper's gradient thresholds (configs/budget/
@@ -285,6 +369,12 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+
+    RANGES: ClassVar[dict[str, Range]] = {
+        "steps": Range(0, integer=True), "seed": Range(0, integer=True), "k_max": Range(0, integer=True),
+        "t_min": Range(0, 1, hi_open=True), "check_finite_every": Range(0, integer=True),
+        "sh_degree_interval": Range(0, integer=True),    # 0: every degree from the start (a model trained elsewhere)
+    }
 
 
 def pattern_config(mode: str, cap: int, steps: int = 10_000, seed: int = 0) -> TrainConfig:
@@ -430,12 +520,19 @@ def from_dict(cls: type[T], data: dict[str, Any] | str | None, _where: str = "")
     kwargs = {k: _convert(hints[k], v, f"{_where}.{k}" if _where else k) for k, v in data.items()}
     if preset:
         key, make = preset
-        return make(kwargs.pop(key, None), **kwargs)
+        return _in_range(make(kwargs.pop(key, None), **kwargs), _where)
     required = [f.name for f in fields if f.name not in kwargs and f.default is dataclasses.MISSING
                 and f.default_factory is dataclasses.MISSING]
     if required:
         raise ValueError(f"{cls.__name__}{' at ' + _where if _where else ''}: missing key(s) {required}")
-    return cls(**kwargs)
+    return _in_range(cls(**kwargs), _where)
+
+
+def _in_range(obj: T, where: str) -> T:
+    problems = range_problems(obj, where)
+    if problems:
+        raise ValueError("; ".join(problems))
+    return obj
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from torch.autograd.function import once_differentiable
 
 from smgs.metrics.ssim import C1, C2, gaussian_kernel_1d
 from smgs.raster.cpu_build import cpu_extension, use_cpu_kernel
+from smgs.raster.kernel_clock import kernel
 from smgs.train.loss import SSIMLoss
 from smgs.train.loss import ray_variance as ray_variance_torch
 
@@ -41,27 +42,43 @@ def fused_available() -> bool:
 
 @dataclass
 class LossParts:
-    """The loss (a differentiable scalar tensor) and its parts as plain floats, for logs."""
+    """The loss (a differentiable scalar tensor) and its parts for logs: L1, SSIM and MSE as one
+    detached tensor [3] on the render's device (float64 from the compiled pass), so that the
+    trainer reads them with the step's other values in its one host wait; ``l1``, ``ssim`` and
+    ``mse`` read them one by one."""
 
     total: torch.Tensor
-    l1: float
-    ssim: float
-    mse: float
+    values: torch.Tensor
+
+    @property
+    def l1(self) -> float:
+        return float(self.values[0])
+
+    @property
+    def ssim(self) -> float:
+        return float(self.values[1])
+
+    @property
+    def mse(self) -> float:
+        return float(self.values[2])
 
 
 class _PhotometricCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, y, window, lam):  # type: ignore[override]
-        stats, grad = _JIT.module().forward(x, y, window, lam, C1, C2, ctx.needs_input_grad[0])
+        with kernel("loss"):
+            stats, grad = _JIT.module().forward(x, y, window, lam, C1, C2, ctx.needs_input_grad[0])
         ctx.save_for_backward(grad)
         ctx.mark_non_differentiable(stats)
-        return x.new_tensor(float(stats[0])), stats
+        return stats[0].to(x.dtype), stats
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g, _g_stats):  # type: ignore[override]
         (grad,) = ctx.saved_tensors
-        return grad * g, None, None, None
+        # the loss itself (g = 1, the trainer's case: a CPU scalar, read without a wait) takes the
+        # gradient as computed, no [H, W, C] product
+        return (grad if float(g) == 1.0 else grad * g), None, None, None
 
 
 class _RayVarianceCPU(torch.autograd.Function):
@@ -69,13 +86,15 @@ class _RayVarianceCPU(torch.autograd.Function):
     def forward(ctx, reg, r: int):  # type: ignore[override]
         ctx.save_for_backward(reg)
         ctx.r = r
-        return _JIT.module().ray_variance(reg, r, reg.new_empty(0))[0]
+        with kernel("loss"):
+            return _JIT.module().ray_variance(reg, r, reg.new_empty(0))[0]
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g):  # type: ignore[override]
         (reg,) = ctx.saved_tensors
-        return _JIT.module().ray_variance(reg, ctx.r, g.detach().contiguous())[0], None
+        with kernel("loss"):
+            return _JIT.module().ray_variance(reg, ctx.r, g.detach().contiguous())[0], None
 
 
 def ray_variance(reg: torch.Tensor, fused: bool | None = None) -> torch.Tensor:
@@ -107,10 +126,9 @@ class PhotometricLoss:
             if self._window is None:
                 self._window = gaussian_kernel_1d(device=x.device).to(torch.float32)
             total, stats = _PhotometricCPU.apply(x, y.detach().to(x.dtype), self._window, self.lam)
-            l1v, ssim_v, mse = (float(v) for v in stats[1:])
-            return LossParts(total, l1v, ssim_v, mse)
+            return LossParts(total, stats[1:])
         l1v = F.l1_loss(x, y)
         ssim_v = self._ssim(x, y)
         total = (1 - self.lam) * l1v + self.lam * (1 - ssim_v)
-        mse = float(F.mse_loss(x.detach(), y))
-        return LossParts(total, float(l1v.detach()), float(ssim_v.detach()), mse)
+        mse = F.mse_loss(x.detach(), y)
+        return LossParts(total, torch.stack([l1v.detach(), ssim_v.detach(), mse]))

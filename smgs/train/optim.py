@@ -80,17 +80,30 @@ class GaussianOptimizer:
     the fused kernels win (at 100K Gaussians ~1.7 ms vs ~3.9 ms per step on one core)."""
 
     @torch.no_grad()
-    def step(self) -> None:
+    def step(self, skip: torch.Tensor | None = None) -> None:
         """One Adam step of every group with a gradient (groups without one, e.g. higher SH
         before their degree is active, keep their state, as torch's Adam does).
 
-        Small models: all groups go through one ``torch._foreach_*`` call per stage with a
+        ``skip``: a 0-dim tensor on the parameters' device, true where the step must not happen (a
+        non-finite loss); decided there without a host wait (torch's fused Adam reads it as its
+        ``found_inf``, as for a gradient scaler's overflow): parameters, moments and step counts
+        stay as they were.
+
+        Small models on the CPU: all groups go through one ``torch._foreach_*`` call per stage with a
         per-tensor step size; the same update as torch's: m ← β1·m + (1 − β1)·g,
         v ← β2·v + (1 − β2)·g², p ← p − lr/(1 − β1ᵗ) · m / (√v / √(1 − β2ᵗ) + eps), state in
-        torch's layout (step, exp_avg, exp_avg_sq), so either path can take the next step."""
+        torch's layout (step, exp_avg, exp_avg_sq), so either path can take the next step. (It reads
+        the step counts and ``skip`` on the host: on a GPU each read would be a wait, and there
+        torch's fused kernels, one per group, cost no more.)"""
         params = [self.g.params[n] for n in self.names]
-        if sum(p.numel() for p in params) > self.FOREACH_MAX_NUMEL:
-            self.opt.step()
+        if params[0].device.type != "cpu" or sum(p.numel() for p in params) > self.FOREACH_MAX_NUMEL:
+            self.opt.found_inf = None if skip is None else skip.to(torch.float32)
+            try:
+                self.opt.step()
+            finally:
+                self.opt.found_inf = None
+            return
+        if skip is not None and bool(skip):
             return
         grads, m1, m2, steps, lrs = [], [], [], [], []
         live = []
@@ -150,9 +163,12 @@ class GaussianOptimizer:
 
     def keep(self, mask: torch.Tensor) -> None:
         """Keep the rows where ``mask`` is true in every group and its Adam moments (3DGS
-        ``_prune_optimizer``)."""
+        ``_prune_optimizer``). The rows are found once (one host wait on a GPU), not once per
+        tensor as a boolean index of each would."""
+        rows = torch.nonzero(mask).squeeze(1)
         for name in PARAM_NAMES:
-            self._swap(name, self.g.params[name].detach()[mask], lambda m: m[mask])
+            self._swap(name, self.g.params[name].detach().index_select(0, rows),
+                       lambda m: m.index_select(0, rows))
 
     @torch.no_grad()
     def set_rows(self, rows: torch.Tensor, values: dict[str, torch.Tensor]) -> None:

@@ -21,8 +21,8 @@ from smgs.device import as_device, check_backend, generator_state, restore_gener
 from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
 from smgs.raster.checks import NonFiniteInputError
+from smgs.raster.kernel_clock import KernelClock
 from smgs.raster.ray_depth import check_sort
-from smgs.raster.sh import eval_sh, num_sh_bases
 from smgs.train.allocator import keep_freed_buffers
 from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
@@ -118,7 +118,10 @@ class Trainer:
         self.background = None if scene.background is None else scene.background.to(self.device, torch.float32)
         self._stack: list[int] = []
         self.step_count = 0          # steps completed
+        # with ``profile`` on (bench/train_step.py): each stage's wall time, and within them the
+        # compiled kernels' (``smgs.raster.kernel_clock``); off, they cost nothing
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0, "optim": 0.0, "strategy": 0.0}
+        self.kernel_clock = KernelClock()
         self.profile = False
 
     # -- initialisation ----------------------------------------------------------------------
@@ -170,19 +173,18 @@ class Trainer:
                background: torch.Tensor | None = None, leaders: bool = False) -> RenderOutput:
         g = self.gaussians
         deg = self.sh_degree() if sh_degree is None else sh_degree
-        if deg == 0:    # view-independent: colours directly (the renderer skips the view directions)
-            colors = eval_sh(0, g.params["sh0"], None) + 0.5
-            sh, deg_arg = (colors.clamp_min(0.0) if self.cfg.gaussians.clamp_colors else colors), None
-        else:
-            sh, deg_arg = g.sh[:, :num_sh_bases(deg)], deg
+        # the two SH parameter groups as they are (no torch.cat per step), the renderer reading the
+        # coefficients the degree uses; at degree 0 the first alone, so that the others get no
+        # gradient (Adam keeps their state until their degree is active, as 3DGS)
         if background is None:
             background = self.background
         return rasterize(
-            g.means, g.quats, g.scales, g.opacities, sh, camera,
+            g.means, g.quats, g.scales, g.opacities, g.params["sh0"], camera,
             alpha=g.alpha if self.use_gef else None,
             beta=g.beta if self.use_softmax else None,
             gamma=g.gamma if self.use_softmax else None,
-            mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg_arg,
+            mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg,
+            sh_rest=g.params["shN"] if deg > 0 else None,
             background=background,
             backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
@@ -195,46 +197,66 @@ class Trainer:
             self._stack = torch.randperm(len(self.scene.train), generator=self.gen, device=self.device).tolist()
         return self._stack.pop()
 
-    def check_finite(self, step: int, where: str = "") -> None:
+    def _param_tensors(self) -> list[tuple[str, torch.Tensor]]:
         params = self.gaussians.params
-        tensors = [params[n].detach() for n in PARAM_NAMES if params[n].numel()]
+        return [(n, params[n].detach()) for n in PARAM_NAMES if params[n].numel()]
+
+    def _finite_flag(self) -> torch.Tensor | None:
+        """A 0-dim bool on the device, false if a parameter may be non-finite (None without
+        Gaussians): one sum per group, NaN/inf propagate into it. A finite group whose sum
+        overflows is a false alarm, which ``check_finite``'s exact count clears."""
+        tensors = [t for _, t in self._param_tensors()]
         if not tensors:   # no Gaussian left (a collapsed model): nothing can be non-finite
+            return None
+        return torch.isfinite(torch.stack([t.sum() for t in tensors])).all()
+
+    def check_finite(self, step: int, where: str = "") -> None:
+        """Raise ``NonFiniteError`` naming the first parameter group with a NaN or inf (a host read)."""
+        flag = self._finite_flag()
+        if flag is None or bool(flag):
             return
-        # One fused reduction; a NaN/inf anywhere makes its norm non-finite. A finite tensor whose
-        # norm overflows is a false alarm, cleared by the exact per-group test below.
-        if bool(torch.isfinite(torch.stack(torch._foreach_norm(tensors))).all()):
-            return
-        for n in PARAM_NAMES:
-            bad = int((~torch.isfinite(params[n].detach())).sum())
+        for n, t in self._param_tensors():
+            bad = int((~torch.isfinite(t)).sum())
             if bad:
                 raise NonFiniteError(n, step, f"{bad} non-finite value(s) {where}".strip())
 
     def train_step(self, step: int | None = None) -> dict[str, float]:
         """Run one step. ``step`` is the number of steps already done (0-based; defaults to the
-        trainer's own count); schedules use the 1-based iteration step + 1 as 3DGS does."""
+        trainer's own count); schedules use the 1-based iteration step + 1 as 3DGS does.
+
+        Outside a refinement the step waits on the host once (on a GPU: ``_read_step``): the loss,
+        its parts and the parameters' finiteness are read together after the optimiser step, which
+        a non-finite loss cancels on the device (so the parameters stay as they were when it
+        raises). The view order waits once per pass over the views, a refinement where it edits."""
         if step is not None and step != self.step_count:
             raise ValueError(f"train_step({step}) but {self.step_count} steps are done; "
                              "load the checkpoint of that step to resume")
-        it = self.step_count + 1
+        if not self.profile:
+            return self._step(self.step_count + 1)
+        with self.kernel_clock.running():
+            return self._step(self.step_count + 1)
+
+    def _step(self, it: int) -> dict[str, float]:
+        """``train_step`` of the 1-based iteration ``it``."""
         with self._timed("render"):
             lr = self.optimizer.update_lr(it)
             view, target, out = self._forward(it)
         with self._timed("loss"):
-            loss, loss_v, parts, var = self._loss(out, target, it)
+            loss, parts, var = self._loss(out, target, it)
         with self._timed("backward"):
             if loss.requires_grad:      # no Gaussian visible in this view: nothing to learn from it
                 loss.backward()
         with self._timed("optim"):
-            self.optimizer.step()
-            self._check_after_step(it)
+            self.optimizer.step(skip=~torch.isfinite(loss.detach()))
+            values = self._read_step(loss, parts, var, it)
         with self._timed("strategy"):
             ev = self.strategy.step_post_backward(it, self.gaussians, self.optimizer, out, view.camera, lr)
             self.optimizer.zero_grad()
         self.step_count += 1
-        logs = {"loss": loss_v, "l1": parts.l1, "ssim": parts.ssim, "psnr": psnr_from_mse(parts.mse),
+        logs = {"loss": values[0], "l1": values[1], "ssim": values[2], "psnr": psnr_from_mse(values[3]),
                 "num_gaussians": float(len(self.gaussians)), "lr_means": lr}
         if var is not None:
-            logs["var_beta"], logs["var_gamma"] = float(var[0].detach()), float(var[1].detach())
+            logs["var_beta"], logs["var_gamma"] = values[4], values[5]
         if ev is not None and ev.changed():
             logs.update(cloned=float(ev.cloned), split=float(ev.split), pruned=float(ev.pruned),
                         pruned_transparent=float(ev.pruned_transparent), pruned_big=float(ev.pruned_big),
@@ -268,9 +290,9 @@ class Trainer:
         self.strategy.step_pre_backward(it, self.gaussians, out)
         return view, target, out
 
-    def _loss(self, out: RenderOutput, target: torch.Tensor, it: int) -> tuple[torch.Tensor, float, Any, Any]:
+    def _loss(self, out: RenderOutput, target: torch.Tensor, it: int) -> tuple[torch.Tensor, Any, Any]:
         """(1 − λ)·L1 + λ·(1 − SSIM) (with L1, SSIM and MSE apart), the β/γ ray-variance terms and
-        the strategy's regulariser; a non-finite loss stops the step naming the parameter group."""
+        the strategy's regulariser, on the device (``_read_step`` reads them)."""
         cfg = self.cfg
         parts = self.photometric(out.rgb, target)
         loss = parts.total
@@ -281,20 +303,32 @@ class Trainer:
         reg = self.strategy.regularizer(it, self.gaussians)
         if reg is not None:
             loss = loss + reg
-        loss_v = float(loss.detach())
-        if not math.isfinite(loss_v):
-            self.check_finite(self.step_count, "before the step")
-            raise NonFiniteError("loss", self.step_count, f"loss = {loss_v}")
-        return loss, loss_v, parts, var
+        return loss, parts, var
 
-    def _check_after_step(self, it: int) -> None:
+    def _read_step(self, loss: torch.Tensor, parts: Any, var: torch.Tensor | None, it: int) -> list[float]:
+        """The step's one host wait, after the optimiser step: the loss, L1, SSIM, MSE (and the
+        variances), with the parameters' finiteness where a check is due (``check_finite_every``).
+        A non-finite loss (the optimiser step was cancelled) stops the step naming the parameter
+        group at fault, else the loss; a group the step made non-finite stops it as
+        ``check_finite`` says. A NaN reaching the loss stops the step at once; the check catches
+        parameters that went non-finite without showing in this view, up to ``every`` − 1 steps
+        late."""
         every = self.cfg.check_finite_every
-        if every and it % every == 0:
-            # A NaN reaching the loss stops the step above at once; this catches parameters that
-            # went non-finite without showing in this view, up to ``every`` − 1 steps late.
+        flag = self._finite_flag() if every and it % every == 0 else None
+        read = [loss.detach().reshape(1).double(), parts.values.to(loss.device, torch.float64).reshape(-1)]
+        if var is not None:
+            read.append(var.detach().double().reshape(-1))
+        if flag is not None:
+            read.append(flag.double().reshape(1))
+        values = torch.cat(read).tolist()
+        if not math.isfinite(values[0]):
+            self.check_finite(self.step_count, "before the step")
+            raise NonFiniteError("loss", self.step_count, f"loss = {values[0]}")
+        if flag is not None and not values[-1]:
             self.check_finite(self.step_count, "after the optimiser step" + (
                 "" if every == 1 else f" (checked every {every} steps: it appeared at step "
                                       f"{max(self.step_count - every + 1, 0)} or later)"))
+        return values
 
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

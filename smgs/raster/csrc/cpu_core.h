@@ -47,7 +47,7 @@ struct FwdOut {
 };
 
 struct BwdIn {
-  const float *g_rgb, *g_alpha, *g_depth, *g_reg;  // g_reg may be null
+  const float *g_rgb, *g_alpha, *g_depth, *g_reg;  // g_reg may be null; g_alpha, g_depth too in backward()
   const float *alpha, *depth, *Tf;
   const int32_t* last;
 };

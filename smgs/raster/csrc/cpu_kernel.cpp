@@ -412,7 +412,8 @@ std::vector<at::Tensor> backward_pixel(at::Tensor g_rgb, at::Tensor g_alpha, at:
 }
 
 // Returns dL/d[means2d, conics, opacities, colors, depths, alpha, beta, gamma, reg_values] over the N
-// input splats (zeros for splats that reach no pixel).
+// input splats (zeros for splats that reach no pixel). An empty g_alpha or g_depth is an output the
+// loss did not use (zero gradient, never made: the trainer's loss reads the colours only).
 std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth,
                                     at::Tensor g_reg, at::Tensor alpha_out, at::Tensor depth_out,
                                     at::Tensor Tf, at::Tensor last, at::Tensor ids, at::Tensor pk,
@@ -421,8 +422,9 @@ std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tenso
                                     int64_t N, int64_t nch, int64_t R, int64_t W, int64_t H, bool gef, bool soft,
                                     int64_t kmax, bool solved, double reg_scale, int64_t nthreads, bool patch) {
   check_f32(g_rgb, "grad rgb");
-  check_f32(g_alpha, "grad alpha");
-  check_f32(g_depth, "grad depth");
+  const bool has_alpha = g_alpha.numel() != 0, has_depth = g_depth.numel() != 0;
+  if (has_alpha) check_f32(g_alpha, "grad alpha");
+  if (has_depth) check_f32(g_depth, "grad depth");
   if (R) check_f32(g_reg, "grad reg");
   Scene sc = make_scene(pk, box, toff, tlist, bg, int(W), int(H), int(nch), int(R), kmax, solved, reg_scale,
                         int(nthreads), kTMin, patch);  // t_min is in `last`: the backward never tests it
@@ -431,8 +433,8 @@ std::vector<at::Tensor> backward(at::Tensor g_rgb, at::Tensor g_alpha, at::Tenso
   // over its tiles in a fixed order: gradients do not depend on the number of threads
   const int Sp = padded(S);
   at::Tensor E = at::empty({tlist.numel(), Sp}, at::TensorOptions().dtype(at::kFloat));
-  BwdIn in{g_rgb.data_ptr<float>(), g_alpha.data_ptr<float>(), g_depth.data_ptr<float>(),
-           R ? g_reg.data_ptr<float>() : nullptr, alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(),
+  BwdIn in{g_rgb.data_ptr<float>(), has_alpha ? g_alpha.data_ptr<float>() : nullptr,
+           has_depth ? g_depth.data_ptr<float>() : nullptr, R ? g_reg.data_ptr<float>() : nullptr, alpha_out.data_ptr<float>(), depth_out.data_ptr<float>(),
            Tf.data_ptr<float>(), last.data_ptr<int32_t>()};
   backward_tiles(sc, in, E.data_ptr<float>(), gef, soft);
   return splat_grads(E, ids, soff, spos, N, int(nch), int(R), sc.M, sc.S, int(nthreads));

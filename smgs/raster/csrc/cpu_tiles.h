@@ -318,8 +318,8 @@ static void bwd_block(const Scene& sc, const float* rows, int Sp, const int32_t*
     // dL/d outputs -> dL/d final state
     const VF Aout = L[v].gather(in.alpha, 1, 0, 0.f);
     const VF dout = L[v].gather(in.depth, 1, 0, 0.f);
-    const VF g_alpha = L[v].gather(in.g_alpha, 1, 0, 0.f);
-    const VF g_depth = L[v].gather(in.g_depth, 1, 0, 0.f);
+    const VF g_alpha = in.g_alpha ? L[v].gather(in.g_alpha, 1, 0, 0.f) : VF(0.f);   // null: no gradient (0)
+    const VF g_depth = in.g_depth ? L[v].gather(in.g_depth, 1, 0, 0.f) : VF(0.f);
     gT[v] = VF(0.f);
     for (int c = 0; c < nch; ++c) {
       gC[v * nc + c] = L[v].gather(in.g_rgb, nch, c, 0.f);

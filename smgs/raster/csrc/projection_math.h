@@ -252,27 +252,34 @@ SMGS_HD inline ShDir sh_dir(const float* m, const float* center) {
   return o;
 }
 
-// colour[c] = Σ_k b[k]·sh[k, c] + 0.5, clamped at 0 where `clamp` (sh [K, C] row-major, K >= the
-// degree's bases).
-SMGS_HD inline void sh_colour(int degree, const float* sh, int nch, const float* m, const float* center, bool clamp,
-                              float* colour) {
+// colour[c] = Σ_k b[k]·sh[k, c] + 0.5, clamped at 0 where `clamp`. The coefficients come in two parts,
+// as the trainer keeps them (3DGS's features_dc / features_rest): sh0 [C] is coefficient 0 and rest
+// [K - 1, C] (row-major) the others, K >= the degree's bases; read in place, nothing concatenated.
+SMGS_HD inline void sh_colour_parts(int degree, const float* sh0, const float* rest, int nch, const float* m,
+                                    const float* center, bool clamp, float* colour) {
   const ShDir dir = sh_dir(m, center);
   float b[kMaxShBases];
   sh_basis(degree, dir.d[0], dir.d[1], dir.d[2], b);
   const int nb = (degree + 1) * (degree + 1);
   for (int c = 0; c < nch; ++c) {
-    float v = b[0] * sh[c];
-    for (int k = 1; k < nb; ++k) v = v + b[k] * sh[k * nch + c];
+    float v = b[0] * sh0[c];
+    for (int k = 1; k < nb; ++k) v = v + b[k] * rest[(k - 1) * nch + c];
     v = v + 0.5f;
     colour[c] = clamp ? (v < 0.f ? 0.f : v) : v;   // clamp_min(0) (NaN stays NaN)
   }
 }
 
-// Adjoint of sh_colour: from dL/dcolour [C] to dL/dsh [K, C] (written, zero beyond the degree's
-// bases) and dL/dm [3] (added to g_means).
-SMGS_HD inline void sh_colour_bwd(int degree, int nbases, const float* sh, int nch, const float* m,
-                                  const float* center, bool clamp, const float* g_colour, float* g_sh,
-                                  float* g_means) {
+// sh_colour_parts of one [K, C] row-major block sh (coefficient 0 first).
+SMGS_HD inline void sh_colour(int degree, const float* sh, int nch, const float* m, const float* center, bool clamp,
+                              float* colour) {
+  sh_colour_parts(degree, sh, sh + nch, nch, m, center, clamp, colour);
+}
+
+// Adjoint of sh_colour_parts: from dL/dcolour [C] to dL/dsh0 [C] and dL/drest [nbases - 1, C] (written,
+// zero beyond the degree's bases) and dL/dm [3] (added to g_means).
+SMGS_HD inline void sh_colour_parts_bwd(int degree, int nbases, const float* sh0, const float* rest, int nch,
+                                        const float* m, const float* center, bool clamp, const float* g_colour,
+                                        float* g_sh0, float* g_rest, float* g_means) {
   const ShDir dir = sh_dir(m, center);
   float b[kMaxShBases];
   sh_basis(degree, dir.d[0], dir.d[1], dir.d[2], b);
@@ -281,16 +288,18 @@ SMGS_HD inline void sh_colour_bwd(int degree, int nbases, const float* sh, int n
   for (int c = 0; c < nch; ++c) {
     float gc = g_colour[c];
     if (clamp) {   // clamp_min(0) passes at >= (torch's mask)
-      float v = b[0] * sh[c];
-      for (int k = 1; k < nb; ++k) v = v + b[k] * sh[k * nch + c];
+      float v = b[0] * sh0[c];
+      for (int k = 1; k < nb; ++k) v = v + b[k] * rest[(k - 1) * nch + c];
       v = v + 0.5f;
       gc = v >= 0.f ? gc : 0.f;
     }
-    for (int k = 0; k < nb; ++k) {
-      g_sh[k * nch + c] = b[k] * gc;
-      w[k] = w[k] + gc * sh[k * nch + c];
+    g_sh0[c] = b[0] * gc;
+    w[0] = w[0] + gc * sh0[c];
+    for (int k = 1; k < nb; ++k) {
+      g_rest[(k - 1) * nch + c] = b[k] * gc;
+      w[k] = w[k] + gc * rest[(k - 1) * nch + c];
     }
-    for (int k = nb; k < nbases; ++k) g_sh[k * nch + c] = 0.f;
+    for (int k = nb; k < nbases; ++k) g_rest[(k - 1) * nch + c] = 0.f;
   }
   if (degree < 1) return;
   float gd[3];
@@ -302,6 +311,13 @@ SMGS_HD inline void sh_colour_bwd(int degree, int nbases, const float* sh, int n
   // d = v / |v|: dL/dv = (g − d·(d·g)) / |v|
   const float dg = (dir.d[0] * gd[0] + dir.d[1] * gd[1]) + dir.d[2] * gd[2];
   for (int k = 0; k < 3; ++k) g_means[k] = g_means[k] + (gd[k] - dir.d[k] * dg) / dir.n;
+}
+
+// sh_colour_parts_bwd of one [nbases, C] row-major block (sh and g_sh, coefficient 0 first).
+SMGS_HD inline void sh_colour_bwd(int degree, int nbases, const float* sh, int nch, const float* m,
+                                  const float* center, bool clamp, const float* g_colour, float* g_sh,
+                                  float* g_means) {
+  sh_colour_parts_bwd(degree, nbases, sh, sh + nch, nch, m, center, clamp, g_colour, g_sh, g_sh + nch, g_means);
 }
 
 }  // namespace proj

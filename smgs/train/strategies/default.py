@@ -47,6 +47,7 @@ class DefaultStrategy:
         self.device = torch.device(device)
         self.seed = int(seed) + 7919
         self.gen = torch.Generator(device=self.device).manual_seed(self.seed)
+        self._scales: dict[tuple, torch.Tensor] = {}
         self._reset_stats(0)
 
     def _ensure(self, n: int) -> None:
@@ -107,19 +108,29 @@ class DefaultStrategy:
     @torch.no_grad()
     def accumulate(self, n: int, ids: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor,
                    width: int, height: int) -> None:
-        """Add one view's screen-space gradient norms (3DGS ``add_densification_stats``)."""
+        """Add one view's screen-space gradient norms (3DGS ``add_densification_stats``), in place
+        and without a host wait: the rows that reach no pixel (radius 0: the dense projection's
+        culled rows) add 0 to the sums and the counts instead of being picked out by a mask (a
+        data-dependent shape: on a GPU a wait each)."""
         self._ensure(n)
         if ids.numel() == 0 or means2d_grad is None:
             return
-        g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])
-        vis = (radii > 0).all(dim=1)
-        ids = ids[vis]
-        self.grad2d.index_add_(0, ids, g[vis].norm(dim=1).to(self.grad2d.dtype))
-        self.count.index_add_(0, ids, torch.ones_like(ids, dtype=self.count.dtype))
+        vis = (radii > 0).all(dim=1).to(self.count.dtype)
+        g = means2d_grad.detach() * self._ndc_scale(width, height, means2d_grad)
+        self.grad2d.index_add_(0, ids, g.norm(dim=1).to(self.grad2d.dtype) * vis)
+        self.count.index_add_(0, ids, vis)
         # Largest screen radius; the renderer gives per-axis 3σ half extents, 3DGS the 3σ radius
-        # of the major axis (equal for axis-aligned splats, up to √2 larger for rotated ones).
-        r = radii[vis].max(dim=1).values.to(self.max_radii.dtype)
-        self.max_radii[ids] = torch.maximum(self.max_radii[ids], r)
+        # of the major axis (equal for axis-aligned splats, up to √2 larger for rotated ones). A
+        # culled row's 0 leaves the maximum as it was (radii are >= 0).
+        self.max_radii.scatter_reduce_(0, ids, radii.max(dim=1).values.to(self.max_radii.dtype), "amax")
+
+    def _ndc_scale(self, width: int, height: int, like: torch.Tensor) -> torch.Tensor:
+        """(W/2, H/2) on the gradients' device, made once per image size (a copy to the device, a
+        wait on a GPU, only then)."""
+        key = (width, height, like.device, like.dtype)
+        if key not in self._scales:
+            self._scales[key] = like.new_tensor([width / 2.0, height / 2.0])
+        return self._scales[key]
 
     @torch.no_grad()
     def step(self, iteration: int, g: Gaussians, opt: GaussianOptimizer) -> RefineEvent:
