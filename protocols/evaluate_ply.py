@@ -40,7 +40,10 @@ arguments:
     eval.KEY=VALUE          evaluation settings, e.g. eval.flip=false, eval.fps_repeats=2
     device=auto|cpu|cuda[:N], backend=auto|cpu|cuda|reference
     report=false            leave the experiment's report as it is
-  --force                 score it again though the same file and config were scored before
+    budget.name=pretrained-NAME   a cell (and report row) of its own, for a second model of the same
+                            scene: another file is refused in a cell that holds one's evaluation
+  --force                 score it again though the same file and config were scored before, or
+                          replace the evaluation of another file in its cell
   -h, --help              this text
 
 The method follows from the file (3dgs without Softmax-GS extras: method= is not needed); the

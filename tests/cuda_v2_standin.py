@@ -22,7 +22,8 @@ from smgs.raster.reference import rasterize_splats_reference
 from smgs.raster.sh import eval_sh
 
 CSRC = Path(cuda_v2.__file__).parent / "csrc"
-PYTYPE = {"at::Tensor": torch.Tensor, "int64_t": int, "bool": bool, "double": float, "std::vector<double>": list}
+PYTYPE = {"at::Tensor": torch.Tensor, "int64_t": int, "bool": bool, "double": float, "std::vector<double>": list,
+          "std::vector<at::Tensor>": list, "std::vector<int64_t>": list}
 LAYOUT = [0, 1, 2, 4, 5, 6, 7, 8, 9, 10]   # packed_row.h's P_* (test_raster_cuda_v2_plumbing checks them)
 KEYS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")
 
@@ -97,7 +98,29 @@ class StandInProjection(_Bound):
         v = self.bind("project_forward_torch", args)
         sh = v["sh"] if v["sh"].numel() else None
         out = self._compute(v, (v["means3d"], v["quats"], v["scales"], sh))
+        out["bad"] = torch.zeros(0, dtype=torch.int32)
+        if v["check_inputs"]:   # the kernel's checks (projection_cuda.h ProjChecks): bad rows culled, flagged
+            bad = self.bad_rows(v, sh)
+            for k in ("means2d", "conics", "depths", "radii", "colours"):
+                if out[k].numel():
+                    out[k] = torch.where(bad.reshape(-1, *[1] * (out[k].dim() - 1)), 0.0, out[k])
+            bg = v["background"]
+            out["bad"] = torch.tensor([int(bool(bad.any()) or not bool(torch.isfinite(bg).all()))], dtype=torch.int32)
         return [out[k] for k in returned(self.src, "project_forward_torch")]
+
+    @staticmethod
+    def bad_rows(v: dict, sh: torch.Tensor | None) -> torch.Tensor:
+        n = v["means3d"].shape[0]
+        rows = lambda t: t.reshape(n, -1)  # noqa: E731
+        ok = torch.isfinite(torch.cat([rows(v["means3d"]), rows(v["quats"]), rows(v["scales"])], 1)).all(1)
+        ok &= (v["scales"] >= 0).all(1)
+        if sh is not None:
+            ok &= torch.isfinite(rows(sh)).all(1)
+        assert len(v["checked_rows"]) == len(v["checked_pos_inf_ok"]) <= 6
+        for t, inf_ok in zip(v["checked_rows"], v["checked_pos_inf_ok"]):
+            t = rows(t)
+            ok &= (~(torch.isnan(t) | (t == -torch.inf)) if inf_ok else torch.isfinite(t)).all(1)
+        return ~ok
 
     def backward(self, *args):
         v = self.bind("project_backward_torch", args)
@@ -241,8 +264,9 @@ class OnHost:
         from device_mix import Remote
         from torch.utils._python_dispatch import _disable_current_modes
 
+        host = lambda a: a.inner if type(a) is Remote else [host(b) for b in a] if isinstance(a, list) else a  # noqa: E731
         with _disable_current_modes():
-            out = fn(*[a.inner if type(a) is Remote else a for a in args])
+            out = fn(*[host(a) for a in args])
         return [Remote(t) for t in out]
 
     def layout(self) -> list[int]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import pickle
 
+import pytest
 import torch
 
 import smgs.raster.api as api
@@ -73,3 +74,18 @@ def test_a_render_packs_its_camera_once_and_sees_a_change(monkeypatch):
     assert len(calls) == 2 and not torch.equal(moved, first)
     torch.testing.assert_close(moved, rasterize(*args, Camera(cam.K.clone(), cam.viewmat.clone(), 24, 18),
                                                 mode="3dgs").rgb, rtol=0, atol=0)
+
+
+def test_a_camera_made_non_finite_after_a_render_is_refused():
+    """The camera's finiteness is decided once per camera too: a write into it decides again."""
+    from smgs.raster.checks import NonFiniteInputError
+
+    g = torch.Generator().manual_seed(1)
+    args = (torch.rand(8, 3, generator=g) + torch.tensor([0.0, 0.0, 3.0]), torch.randn(8, 4, generator=g),
+            0.1 * torch.ones(8, 3), 0.5 * torch.ones(8), torch.rand(8, 3, generator=g))
+    cam = _cam()
+    rasterize(*args, cam, mode="3dgs")
+    with torch.no_grad():
+        cam.viewmat[1, 3] = float("nan")
+    with pytest.raises(NonFiniteInputError, match="camera.viewmat has 1 NaN or inf"):
+        rasterize(*args, cam, mode="3dgs")

@@ -77,3 +77,57 @@ def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_onc
     assert sum("the pair count" in w for w in where_fwd) == 1, where_fwd
     assert n_fwd < n_default, (n_fwd, n_default, where_fwd)
     assert n_bwd == (1 if mode_flags(mode)[1] else 0), where_bwd
+
+
+BAD_INPUTS = [("means3d", (5, 1), float("nan"), r"means3d has 1 NaN or inf"),
+              ("scales", (6, 0), -0.1, r"scales has 1 negative value"),
+              ("opacities", (7,), float("inf"), r"opacities has 1 NaN or inf"),
+              ("gamma", (8,), -float("inf"), r"gamma has 1 NaN or -inf"),
+              ("colors", (9, 2, 1), float("nan"), r"colors_or_sh has 1 NaN or inf")]
+
+
+@pytest.mark.parametrize("name, at, value, message", BAD_INPUTS)
+def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_nothing_of_a_bad_one(
+        monkeypatch, name, at, value, message):
+    """v2 + lean glue: the fused projection checks every per-Gaussian input itself (a device flag,
+    no launch of its own); a bad Gaussian is culled there, so the compositing renders nothing of it
+    (a NaN splat's box is the whole image), and the flag, copied before the compositing's one wait,
+    is read after it: the same error as the verified glue's, naming the input."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
+    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+    with simulated_gpu(monkeypatch) as m:
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        s = _splats(60, OTHER, sh=True)
+        with torch.no_grad():
+            s[name][at] = value
+        m.reset()
+        with pytest.raises(ValueError, match=message):
+            _render(s, cam, "softmax_gs", True, cuda_kernels="v2")
+        assert m.counts["binding forward: the pair count"] == 1     # rendered, then refused
+        # the flag went to the host without a wait and rode on the pair count's; only the naming
+        # after it (checks.finite's exact count, the error path) reads the device again
+        assert m.counts["copy to host, non_blocking"] == 1
+        assert not [w for w in m.where if "smgs/raster" in w and "checks.py" not in w], m.where
+        v = comp.base.saved["v"]
+        row = at[0]
+        assert (v["radii"][row] == 0).all()                          # culled in the projection
+        assert all(torch.isfinite(t).all() for t in (comp.base.outs["rgb"], comp.base.outs["alpha"]))
+
+
+def test_the_lean_glue_renders_an_infinite_gamma_without_complaint(monkeypatch):
+    """γ = +inf is valid (a hard depth decay): the kernel's check lets it through."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
+    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+    with simulated_gpu(monkeypatch) as m:
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        s = _splats(60, OTHER, sh=False)
+        with torch.no_grad():
+            s["gamma"][:5] = float("inf")
+        out = _render(s, cam, "softmax_gs", False, cuda_kernels="v2")
+        assert (comp.base.saved["v"]["radii"][5:10] != 0).any() and torch.isfinite(out.rgb.cpu()).all()
