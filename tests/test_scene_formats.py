@@ -159,6 +159,7 @@ def test_dataset_on_the_command_line_names_a_plugin_without_a_file_the_way_to_ru
         "dataset=stripes is a plugin scene format or dataset without a file in configs/dataset/: run it with "
         "grid.datasets=[stripes] (its settings as +dataset.KEY=VALUE)")
     assert check_command_line(["dataset=nowhere"]).startswith("dataset=nowhere is no dataset; known: colmap, ")
+    assert check_command_line(["grid.datasets=[stripes]", "+dataset.path=/data/x"]) is None   # a plugin's own key
 
 
 def test_smgs_list_datasets_names_a_plugin_and_not_the_runners_stand_in(plugin_dir, capsys):
