@@ -26,6 +26,8 @@ What changed from nerfbaselines, and why:
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -156,15 +158,57 @@ class LeadingSplats(Protocol):
 
 
 @runtime_checkable
+class OpacityResets(Protocol):
+    """Optional, beside ``Method``: a method whose schedule resets its primitives' opacities (3DGS
+    drops them all to 0.01 and lets training restore them). The harness evaluates the error-against-
+    time curve just before such a step, never on it: right after a reset a model renders ~13.6 dB
+    (``protocols.train_loop.eval_steps``)."""
+
+    def reset_steps(self, steps: int) -> list[int]:
+        """The steps (1-based: ``train_step(s - 1)`` is the one) of a ``steps`` run that end in a reset."""
+        ...
+
+
+@runtime_checkable
 class ResolvedSettings(Protocol):
     """Optional, beside ``Method``: the complete settings a run trains with, the method's own
     defaults included. The protocol hashes them into the run's identity, so a result trained under
-    earlier defaults (an initial value changed by an update) is retrained, not reported as current."""
+    earlier defaults (an initial value changed by an update) is retrained, not reported as current.
+    They are made once per run: a constructor that takes ``settings=`` is handed the very object
+    (``Resolved.settings``) instead of building it again."""
 
     @classmethod
-    def resolved_settings(cls, config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
-        """What ``cls(scene, config, run=run)`` trains with, as plain data."""
+    def resolved_settings(cls, config: dict[str, Any], run: RunSettings) -> Any:
+        """What ``cls(scene, config, run=run)`` trains with: plain data (a dict) or a config
+        dataclass (hashed as ``dataclasses.asdict`` gives it)."""
         ...
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """A method's settings for one run, worked out once (``baselines.registry.resolve``): ``config``
+    its own settings with the name's fixed ones merged, ``run`` what the protocol asks (None outside
+    a protocol run), ``settings`` what it trains with (``ResolvedSettings``; None for a method that
+    does not say). ``create_method`` builds the method from it without resolving anything again."""
+
+    name: str
+    config: dict[str, Any]
+    run: RunSettings | None
+    settings: Any = None
+
+    def data(self) -> dict[str, Any] | None:
+        """``settings`` as plain data (what the result's identity hashes)."""
+        s = self.settings
+        return dataclasses.asdict(s) if dataclasses.is_dataclass(s) and not isinstance(s, type) else s
+
+
+def merge_config(base: dict, over: dict) -> dict:
+    """Deep merge of nested config dicts (``over`` wins; neither input is modified): how a method's
+    settings are layered (the method's, the dataset's, the name's fixed ones)."""
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = merge_config(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
 
 
 @dataclass(frozen=True)

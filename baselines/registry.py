@@ -12,18 +12,16 @@ is imported when the method is created or its class is asked for.
 
 from __future__ import annotations
 
-import copy
-import importlib
 import inspect
-import warnings
 from importlib import metadata
 from typing import Any
 
 import torch
 
-from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, RunSettings, SceneNeeds
+from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, Resolved, RunSettings, SceneNeeds, merge_config
 from smgs.data.scene import Scene
 from smgs.device import as_device
+from smgs.plugins import entry_points, load_target, source_of
 
 ENTRY_POINT_GROUP = "smgs.methods"
 
@@ -56,14 +54,7 @@ def unregister(name: str) -> None:
 
 
 def _entry_points() -> dict[str, metadata.EntryPoint]:
-    eps = {}
-    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        if ep.name in BUILTINS:
-            warnings.warn(f"plugin method {ep.name!r} ({ep.value}) is shadowed by the built-in of that name",
-                          stacklevel=3)
-            continue
-        eps.setdefault(ep.name, ep)
-    return eps
+    return entry_points(ENTRY_POINT_GROUP, BUILTINS, "plugin method")
 
 
 def list_methods() -> list[str]:
@@ -81,37 +72,18 @@ def get_spec(name: str) -> MethodSpec:
         obj = ep.load()
         if isinstance(obj, MethodSpec):
             return obj
-        dist = getattr(ep, "dist", None)
-        return MethodSpec(name, obj, source=f"plugin {dist.name if dist else ep.value}")
+        return MethodSpec(name, obj, source=source_of(ep))
     raise KeyError(f"unknown method {name!r}; registered methods: {', '.join(list_methods())}")
-
-
-def _import(target: str) -> Any:
-    module, _, attr = target.partition(":")
-    if not module or not attr:
-        raise ValueError(f"method target must be 'module:Class', got {target!r}")
-    obj = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def method_class(name: str) -> type:
     spec = get_spec(name)
-    cls = _import(spec.target) if isinstance(spec.target, str) else spec.target
+    cls = load_target(spec.target, "method") if isinstance(spec.target, str) else spec.target
     missing = [attr for attr in METHOD_FUNCTIONS if not callable(getattr(cls, attr, None))]
     if missing:
         raise TypeError(f"method {name!r} ({cls!r}) does not implement "
                         f"{', '.join('Method.' + m for m in missing)} (docs/adding-a-method.md, 'Adding a method')")
     return cls
-
-
-def merge_config(base: dict, over: dict) -> dict:
-    """Deep merge of nested config dicts (``over`` wins; neither input is modified)."""
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = merge_config(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
-    return out
 
 
 def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -124,11 +96,19 @@ def resolve_config(name: str, config: dict[str, Any] | None = None) -> dict[str,
     return merge_config(config, spec.fixed)
 
 
-def resolved_settings(name: str, config: dict[str, Any] | None, run: RunSettings) -> dict[str, Any] | None:
-    """The method's complete settings for ``run`` (``ResolvedSettings``), or None for a method
-    that does not give them."""
+def resolve(name: str, config: dict[str, Any] | None = None, run: RunSettings | None = None) -> Resolved:
+    """The method's settings for ``run``, worked out once: its config with the fixed settings merged
+    (``resolve_config``) and, for a protocol run of a method that gives them, the complete settings
+    it trains with (``ResolvedSettings``)."""
+    own = resolve_config(name, config)
     fn = getattr(method_class(name), "resolved_settings", None)
-    return fn(resolve_config(name, config), run) if callable(fn) else None
+    return Resolved(name, own, run, fn(own, run) if callable(fn) and run is not None else None)
+
+
+def resolved_settings(name: str, config: dict[str, Any] | None, run: RunSettings) -> dict[str, Any] | None:
+    """The method's complete settings for ``run`` as plain data (``ResolvedSettings``), or None for
+    a method that does not give them."""
+    return resolve(name, config, run).data()
 
 
 def _takes(cls: type, keyword: str) -> bool:
@@ -139,11 +119,27 @@ def _takes(cls: type, keyword: str) -> bool:
     return any(p.name == keyword or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
+def _names(cls: type, keyword: str) -> bool:
+    """Whether the constructor names ``keyword`` itself (not only through ``**kwargs``)."""
+    try:
+        return keyword in inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None, *,
-                  device: torch.device | str, run: RunSettings | None = None) -> Method:
+                  device: torch.device | str, run: RunSettings | None = None,
+                  resolved: Resolved | None = None) -> Method:
     """Check the scene against the method's needs, then set the method up on ``device`` (a
     resolved ``torch.device``, or a setting such as "auto", "cpu", "cuda:1", resolved here:
-    ``smgs.device.as_device``) for the protocol's ``run`` (None outside a protocol run)."""
+    ``smgs.device.as_device``) for the protocol's ``run`` (None outside a protocol run).
+    ``resolved``: the settings already worked out (``resolve``), in place of ``config`` and ``run``;
+    a constructor that takes ``settings=`` gets ``resolved.settings`` and builds nothing again."""
+    if resolved is None:
+        resolved = resolve(name, config, run)
+    elif config is not None or run is not None or resolved.name != name:
+        raise ValueError(f"create_method({name!r}): give config and run, or the settings resolved for this "
+                         f"method (resolved= of {resolved.name!r}), not both")
     dev = as_device(device)
     cls = method_class(name)
     for keyword, why in (("device", "creates its tensors on that device"),
@@ -154,7 +150,8 @@ def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None,
                             f"and {why} (docs/adding-a-method.md, 'Adding a method')")
     needs: SceneNeeds = getattr(cls, "needs", SceneNeeds())
     needs.check(scene, name)
-    method = cls(scene, resolve_config(name, config), name=name, device=dev, run=run)
+    given = {"settings": resolved.settings} if resolved.settings is not None and _names(cls, "settings") else {}
+    method = cls(scene, resolved.config, name=name, device=dev, run=resolved.run, **given)
     if getattr(method, "name", None) != name:
         raise TypeError(f"method {name!r} ({cls.__module__}.{cls.__qualname__}) must set `self.name` to the "
                         f"name it was created under ({name!r}), not {getattr(method, 'name', None)!r}")

@@ -38,13 +38,15 @@ class GaussianSplatting:
 
     def __init__(self, scene: Scene, config: dict[str, Any] | TrainConfig | None = None, *,
                  name: str | None = None, device: torch.device | str, run: RunSettings | None = None,
-                 gaussians: Gaussians | None = None) -> None:
+                 settings: TrainConfig | None = None, gaussians: Gaussians | None = None) -> None:
+        """``settings``: the run's TrainConfig as ``resolved_settings`` made it (the registry hands
+        it over, so it is built once per run); without it, made here from ``config`` and ``run``.
+        A TrainConfig given as ``config`` is taken as it is."""
         if isinstance(config, TrainConfig):
-            if run is not None:
-                raise ValueError("a TrainConfig is complete: give the run's settings in it, not as `run`")
-            cfg = config
-        else:
-            cfg = from_dict(TrainConfig, train_config(config or {}, run) if run else config or {})
+            if run is not None or settings is not None:
+                raise ValueError("a TrainConfig is complete: give the run's settings in it, not as `run` or `settings`")
+            settings = config
+        cfg = settings if settings is not None else self.resolved_settings(config or {}, run)
         self.name = name or cfg.mode
         self.notes = self.needs.check(scene, self.name)
         self.trainer = Trainer(scene, cfg, gaussians, device=device)
@@ -54,9 +56,10 @@ class GaussianSplatting:
         return self.trainer.device
 
     @classmethod
-    def resolved_settings(cls, config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
-        """The run's TrainConfig with every default filled in (``ResolvedSettings``)."""
-        return to_dict(from_dict(TrainConfig, train_config(config, run)))
+    def resolved_settings(cls, config: dict[str, Any], run: RunSettings | None) -> TrainConfig:
+        """The run's TrainConfig, every default filled in (``ResolvedSettings``): the method's
+        ``config`` mapped with ``run`` (``baselines.trainer_settings``), or as it is without one."""
+        return from_dict(TrainConfig, train_config(config, run) if run else config)
 
     @classmethod
     def from_ply(cls, scene: Scene, path: str | Path, config: dict[str, Any] | None = None, *,
@@ -69,13 +72,13 @@ class GaussianSplatting:
     def from_splats(cls, scene: Scene, splats: PlySplats, config: dict[str, Any] | None = None,
                     where: str | Path = "<splats>", *, device: torch.device | str,
                     run: RunSettings | None = None) -> "GaussianSplatting":
-        from baselines.registry import merge_config
+        from baselines.method import merge_config
 
         config = train_config(config or {}, run) if run else config or {}
         cfg = from_dict(TrainConfig, merge_config(config, train_overrides(splats, where)))
         dev = as_device(device)
         g = gaussians_from_splats(splats, cfg.gaussians, splats_extent(splats, scene.extent, where), device=dev)
-        return cls(scene, cfg, name=cfg.mode, device=dev, gaussians=g)
+        return cls(scene, name=cfg.mode, device=dev, settings=cfg, gaussians=g)
 
     def export_ply(self, path: str | Path) -> Path:
         """Write the model as a 3DGS PLY (atomically; ``smgs.io.ply`` documents the layout)."""
@@ -99,6 +102,10 @@ class GaussianSplatting:
 
     def num_gaussians(self) -> int:
         return len(self.trainer.gaussians)
+
+    def reset_steps(self, steps: int) -> list[int]:
+        """The steps of a ``steps`` run that end in an opacity reset (``OpacityResets``)."""
+        return self.trainer.strategy.reset_steps(steps)
 
     @torch.no_grad()
     def parameter_values(self) -> dict[str, torch.Tensor]:

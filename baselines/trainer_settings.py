@@ -6,8 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from baselines.method import RunSettings
-from baselines.registry import merge_config
+from baselines.method import RunSettings, merge_config
 from smgs.train.config import DensifyConfig, current_keys
 
 SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
@@ -20,7 +19,7 @@ def train_config(config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
     densify = current_keys(DensifyConfig, dict(mc.get("densify") or {}))   # its earlier key names as today's
     densify.update(budget_kind=run.budget_kind)
     if run.grad_threshold is not None:   # MCMC budgets have none
-        densify["grow_grad2d"] = run.grad_threshold
+        densify["grad_threshold"] = run.grad_threshold
     if run.cap is not None:
         densify["cap"] = int(run.cap)
     mc.update(steps=run.steps, seed=run.seed, backend=run.backend, densify=densify)

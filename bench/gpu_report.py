@@ -5,6 +5,7 @@ stay). Every figure the stages measured is in the JSON; the markdown has the tab
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 
@@ -32,7 +33,7 @@ def _table(header: list[str], rows: list[list]) -> list[str]:
 def _env_lines(env: dict | None) -> list[str]:
     if not env:
         return ["(the env stage did not finish)", ""]
-    keys = [("GPU", "gpu"), ("compute capability", "capability"), ("GPU memory MiB", "gpu_mib"), ("driver", "driver"),
+    keys = [("GPU", "gpu"), ("why no GPU", "why_no_gpu"), ("compute capability", "capability"), ("GPU memory MiB", "gpu_mib"), ("driver", "driver"),
             ("torch", "torch"), ("CUDA (torch)", "cuda"), ("nvcc", "nvcc"), ("python", "python"),
             ("commit", "commit"), ("CPU", "cpu"), ("CPU cores", "cpu_count"), ("gsplat", "gsplat"),
             ("bundle on PYTHONPATH", "bundle"), ("imports missing", "imports_missing")]
@@ -44,7 +45,8 @@ def _section(title: str, run, body) -> list[str]:
     if run is None:
         return lines + ["Not asked for.", ""]
     if run.status != "ok":
-        lines += [f"**{run.status}** ({run.seconds} s) {run.note}".rstrip(), ""]
+        lines += [f"**{run.status}** ({run.seconds} s) {'' if run.problems else run.note}".rstrip(), ""]
+        lines += [f"- {p}" for p in run.problems] + ([""] if run.problems else [])
     if run.result and "skipped" not in run.result:
         lines += body(run.result)
     return lines
@@ -56,7 +58,7 @@ def _build(r: dict) -> list[str]:
 
 
 def _pytest(r: dict) -> list[str]:
-    lines = [f"- exit code {r.get('rc')}, {r.get('seconds')} s: {r.get('tests')} tests, {r.get('failures')} failed, "
+    lines = [f"- `-m \"{r.get('selection', 'gpu')}\"`, exit code {r.get('rc')}, {r.get('seconds')} s: {r.get('tests')} tests, {r.get('failures')} failed, "
              f"{r.get('errors')} errors, {r.get('skipped_tests')} skipped",
              f"- from the log: {r.get('passed_so_far')} passed, {r.get('failed_so_far')} failed or errors "
              "(the counts so far where the stage was cut)", f"- last line: `{r.get('summary', '')[-200:]}`"]
@@ -123,11 +125,12 @@ def _smoke(r: dict) -> list[str]:
         [f"```\n{r['tail']}\n```", ""] if r.get("tail") else [])
 
 
-SECTIONS = [("Build", "build", _build), ("pytest -m gpu", "pytest", _pytest),
+SECTIONS = [("Build", "build", _build), ("pytest -m gpu: the renderer's tests", "pytest", _pytest),
             ("Agreement (CUDA against the CPU backend and the reference)", "agreement", _agreement),
             ("Timing (and gsplat beside it)", "timing", _timing), ("Kernel launches and host waits", "syncs", _syncs),
             ("Training fox (transforms.json, full budget, 3000 steps, cpu preset)", "fox", _fox),
-            ("Smoke experiment", "smoke", _smoke)]
+            ("Smoke experiment", "smoke", _smoke),
+            ("pytest -m 'gpu and slow': training and variant builds", "pytest-train", _pytest)]
 
 
 def render_markdown(runs: dict, date: str, gsplat: str, command: str) -> str:
@@ -136,26 +139,47 @@ def render_markdown(runs: dict, date: str, gsplat: str, command: str) -> str:
     lines = [f"# GPU check: {(env or {}).get('gpu') or 'no GPU'}, {date}", "",
              f"Written by `{command}` (bench/gpu_check.py; docs/gpu/README.md says how to read it).", ""]
     lines += _env_lines(env)
+    lines += [f"**Verdict: {verdict(runs)}.** A stage is ok only where its process ended in time and its result "
+              "shows no failed test, failed cell or missing figure (bench/gpu_verdict.py).", ""]
     lines += ["## Stages", ""] + _table(["stage", "status", "seconds", "note"],
-                                          [[r.name, r.status, r.seconds, r.note[:200]] for r in runs.values()])
+                                          [[r.name, r.status, r.seconds, r.note[:300]] for r in runs.values()])
     lines += [f"gsplat build: {gsplat}", ""]
     for title, key, body in SECTIONS:
         lines += _section(title, runs.get(key), body)
     return "\n".join(lines)
 
 
-def write_report(args, runs: dict, date: str, slug: str, gsplat: str) -> list[Path]:
-    """Write ``<slug>-<date>.md`` and ``.json`` into ``args.out`` (and ``args.report_dir``)."""
+def device_slug(env: dict | None) -> str:
+    name = (env or {}).get("gpu") or "no-gpu"
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
+
+
+def write_report(args, runs: dict, date: str, gsplat: str) -> list[Path]:
+    """Write ``<gpu>-<date>.md`` and ``.json`` into ``args.out``, and into ``args.report_dir`` (the
+    checkout's record, docs/gpu/) only where the env stage found a GPU: a run without one leaves
+    nothing there."""
+    env = (runs.get("env") or _NoRun()).result
     command = "python -m bench.gpu_check --out " + str(args.out.name)
     md = render_markdown(runs, date, gsplat, command)
-    data = {"date": date, "gsplat_build": gsplat, "budget_s": args.budget,
-            "stages": {n: {"status": r.status, "seconds": r.seconds, "note": r.note, "result": r.result}
-                       for n, r in runs.items()}}
+    data = {"date": date, "gsplat_build": gsplat, "budget_s": args.budget, "verdict": verdict(runs),
+            "stages": {n: {"status": r.status, "seconds": r.seconds, "note": r.note, "problems": r.problems,
+                           "result": r.result} for n, r in runs.items()}}
     paths = []
-    dirs = [args.out] + ([Path(args.report_dir)] if str(args.report_dir or "") not in ("", ".") else [])
+    on_gpu = bool((env or {}).get("gpu"))
+    dirs = [args.out] + ([Path(args.report_dir)] if on_gpu and str(args.report_dir or "") not in ("", ".") else [])
     for d in dirs:
         for suffix, text in ((".md", md), (".json", json.dumps(data, indent=1, default=str))):
-            p = Path(d) / f"{slug}-{date}{suffix}"
+            p = Path(d) / f"{device_slug(env)}-{date}{suffix}"
             _atomic(p, text + "\n")
             paths.append(p)
     return paths
+
+
+class _NoRun:
+    result = None
+
+
+def verdict(runs: dict) -> str:
+    """"passed" where every stage is ok, else "failed" with the stages that are not."""
+    bad = [f"{r.name} {r.status}" for r in runs.values() if r.status != "ok"]
+    return "passed" if not bad else "failed: " + ", ".join(bad)

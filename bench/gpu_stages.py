@@ -58,6 +58,9 @@ CPU_STANDIN = [Variant("cpu backend (stand-in)", backend="cpu")]
 GRAD_KEYS = ("means3d", "quats", "scales", "opacities", "colors", "alpha", "beta", "gamma")
 TIMING_SCENES = ("10k_256", "100k_512", "rand_1m_1600x1000")
 AGREEMENT_SCENES = ("10k_256", "100k_512")
+SMALL_SCENE = "small (vs reference, float64)"
+FOX_METHODS = ("3dgs", "softmax_gs")
+GSPLAT_ENV = "SMGS_GPU_CHECK_GSPLAT"   # set by bench/gpu_check.py: the background gsplat build's state
 
 
 @dataclass
@@ -165,37 +168,73 @@ def run_env(ctx: Context) -> dict:
 
 # -- build -----------------------------------------------------------------------------------------
 
-BUILDS = [("default CUDA renderer", "smgs.raster.cuda"), ("v2 compositing", "smgs.raster.cuda_v2"),
-          ("fused projection", "smgs.raster.projection_cuda"), ("CPU renderer", "smgs.raster.cpu"),
-          ("CPU projection", "smgs.raster.projection")]
+# (what, module, t_min): every extension the stages load, the variants for t_min = 0.05 too (the
+# tests' non-default threshold, a build of its own), so that no later stage waits for a build
+BUILDS = [("default CUDA renderer", "smgs.raster.cuda", None), ("v2 compositing", "smgs.raster.cuda_v2", None),
+          ("fused projection", "smgs.raster.projection_cuda", None), ("CPU renderer", "smgs.raster.cpu", None),
+          ("CPU projection", "smgs.raster.projection", None),
+          ("default CUDA renderer, t_min 0.05", "smgs.raster.cuda", 0.05),
+          ("v2 compositing, t_min 0.05", "smgs.raster.cuda_v2", 0.05)]
+CPU_BUILDS = ("smgs.raster.cpu", "smgs.raster.projection")
+# one build in a process of its own: load (building where the cache has none), print the seconds
+BUILD_ONE = """
+import importlib, sys, time
+name, t_min = sys.argv[1], sys.argv[2]
+t0 = time.perf_counter()
+mod = importlib.import_module(name)
+if name == "smgs.raster.projection":
+    if not mod.fused_available():
+        sys.exit("the compiled CPU projection is unavailable here")
+elif t_min == "default":
+    mod.extension()
+else:
+    mod.extension(float(t_min))
+print(round(time.perf_counter() - t0, 1))
+"""
 
 
 def run_build(ctx: Context) -> dict:
-    """Each extension built (or loaded from the cache) and timed, one by one."""
-    why = no_gpu_reason(ctx)
+    """Every extension built (or loaded from the cache) at once, each in its own process, timed."""
+    why = no_gpu_reason(ctx) or ("the check runs on the CPU" if ctx.device == "cpu" else None)
     res: dict = {}
-    for what, module in BUILDS:
-        gpu = module != "smgs.raster.cpu" and module != "smgs.raster.projection"
-        if gpu and (why or ctx.device == "cpu"):
-            res[what] = {"skipped": why or "the check runs on the CPU"}
+    procs = {}
+    for what, module, t_min in BUILDS:
+        if module not in CPU_BUILDS and why:
+            res[what] = {"skipped": why}
             continue
-        t0 = time.perf_counter()
-        try:
-            mod = importlib.import_module(module)
-            getattr(mod, "fused_available", None) and mod.fused_available()
-            mod.extension() if hasattr(mod, "extension") else None
-            res[what] = {"seconds": round(time.perf_counter() - t0, 1)}
-        except Exception as e:  # noqa: BLE001 - recorded, the next build still runs
-            res[what] = {"error": f"{type(e).__name__}: {e}"[:2000], "seconds": round(time.perf_counter() - t0, 1)}
-        ctx.save(res)
-    return res
+        log = (ctx.out / "logs" / f"build-{module.rsplit('.', 1)[1]}-{t_min or 'default'}.log")
+        log.parent.mkdir(parents=True, exist_ok=True)
+        procs[what] = (subprocess.Popen([sys.executable, "-c", BUILD_ONE, module, str(t_min or "default")], cwd=ROOT,
+                                        stdout=log.open("w"), stderr=subprocess.STDOUT), log, time.perf_counter())
+    ends = time.monotonic() + (ctx.left(margin=3.0) or 1e9)
+    while procs:
+        for what, (proc, log, t0) in list(procs.items()):
+            if proc.poll() is None and time.monotonic() < ends:
+                continue
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+                res[what] = {"error": "cut at the stage's deadline", "seconds": round(time.perf_counter() - t0, 1)}
+            elif proc.returncode != 0:
+                res[what] = {"error": f"exit code {proc.returncode}: " + log.read_text()[-1500:].strip(),
+                             "seconds": round(time.perf_counter() - t0, 1)}
+            else:
+                res[what] = {"seconds": round(time.perf_counter() - t0, 1)}
+            del procs[what]
+            ctx.save(res)
+        time.sleep(0.2)
+    return {what: res[what] for what, _, _ in BUILDS}
 
 
 # -- pytest -m gpu ---------------------------------------------------------------------------------
 
-# the renderer's tests first: if the stage runs out of time, the training ones are what is left out
+# The renderer's GPU tests run first (stage "pytest"); those that train a model or build another
+# variant of an extension (a non-default t_min) are marked slow and run after fox ("pytest-train"),
+# so that a renderer test never waits for a build or a training run.
 GPU_TEST_ORDER = ("test_raster_cuda.py", "test_raster_projection_cuda.py", "test_raster_cuda_v2.py",
                   "test_raster_quad.py", "test_raster_input_checks.py", "test_device_gpu.py")
+PYTEST_SELECTION = {"pytest": "gpu and not slow", "pytest-train": "gpu and slow"}
+PYTEST_TEST_TIMEOUT = {"pytest": 45, "pytest-train": 120}   # seconds one test may take (pytest-timeout)
 
 
 def gpu_test_files() -> list[str]:
@@ -204,14 +243,19 @@ def gpu_test_files() -> list[str]:
     return [f"tests/{n}" for n in first + [n for n in marked if n not in first]]
 
 
-def run_pytest(ctx: Context) -> dict:
-    """``pytest -m gpu`` (the files with GPU tests, the renderer's first; or ``ctx.pytest_args``),
+def _run_pytest(ctx: Context, stage: str) -> dict:
+    """``pytest -m <PYTEST_SELECTION[stage]>`` over the files with GPU tests (or ``ctx.pytest_args``),
     its junit report parsed; cut short by the stage's deadline, what the log shows so far."""
-    xml, log = ctx.out / "pytest-gpu.xml", ctx.out / "pytest-gpu.log"
-    args = [sys.executable, "-m", "pytest", "-m", "gpu", "-v", "-p", "no:cacheprovider", f"--junitxml={xml}",
-            *(ctx.pytest_args or gpu_test_files())]
+    why = no_gpu_reason(ctx)
+    if why:
+        return {"skipped": why}
+    tag = {"pytest": "gpu", "pytest-train": "train"}[stage]
+    xml, log = ctx.out / f"pytest-{tag}.xml", ctx.out / f"pytest-{tag}.log"
+    xml.unlink(missing_ok=True)
+    args = [sys.executable, "-m", "pytest", "-m", PYTEST_SELECTION[stage], "-v", "-p", "no:cacheprovider",
+            f"--junitxml={xml}", *(ctx.pytest_args or gpu_test_files())]
     if importlib.util.find_spec("pytest_timeout"):
-        args.append("--timeout=150")   # one hung test does not take the whole stage
+        args.append(f"--timeout={PYTEST_TEST_TIMEOUT[stage]}")   # one hung test does not take the whole stage
     t0 = time.perf_counter()
     with log.open("w") as f:
         try:
@@ -219,12 +263,22 @@ def run_pytest(ctx: Context) -> dict:
         except subprocess.TimeoutExpired:
             rc = "cut at the stage's deadline"
     text = log.read_text()
-    res = {"rc": rc, "seconds": round(time.perf_counter() - t0, 1),
+    res = {"rc": rc, "seconds": round(time.perf_counter() - t0, 1), "selection": PYTEST_SELECTION[stage],
            "summary": (text.strip().splitlines() or [""])[-1],
            "passed_so_far": text.count(" PASSED"), "failed_so_far": text.count(" FAILED") + text.count(" ERROR")}
     if xml.exists() and isinstance(rc, int):
         res.update(junit_summary(xml))
     return res
+
+
+def run_pytest(ctx: Context) -> dict:
+    """The renderer's GPU tests (``-m "gpu and not slow"``)."""
+    return _run_pytest(ctx, "pytest")
+
+
+def run_pytest_train(ctx: Context) -> dict:
+    """The GPU tests that train or build another variant (``-m "gpu and slow"``)."""
+    return _run_pytest(ctx, "pytest-train")
 
 
 def junit_summary(path: Path) -> dict:
@@ -262,6 +316,7 @@ def compare(a, ga, b, gb) -> dict:
     """Largest differences of b against a: outputs absolute, gradients relative to a's largest."""
     res = {k: float((a[k] - b[k]).abs().max()) if a[k].numel() else 0.0 for k in ("rgb", "alpha", "depth")}
     res["n_contrib_differ"] = int((a["n_contrib"] != b["n_contrib"]).sum())
+    res["pixels"] = a["n_contrib"].numel()
     res["finite"] = all(bool(torch.isfinite(b[k]).all()) for k in ("rgb", "alpha", "depth")) and all(
         v is None or bool(torch.isfinite(v).all()) for v in gb.values())
     worst, which = 0.0, None
@@ -288,10 +343,10 @@ def run_agreement(ctx: Context) -> dict:
     dev = ctx.device
     rows = []
     small = raster.to_inputs(raster.random_scene(300 if not ctx.tiny else 60, 64, 48, 5))
-    for name in [*AGREEMENT_SCENES, "small (vs reference, float64)"]:
-        params, cam = small if name.startswith("small") else scene(ctx, name)
+    for name in [*AGREEMENT_SCENES, SMALL_SCENE]:
+        params, cam = small if name == SMALL_SCENE else scene(ctx, name)
         for mode in MODES:
-            if name.startswith("small"):
+            if name == SMALL_SCENE:
                 a, ga = _render(params, cam, mode, "reference", {}, dev, torch.float64)
             else:
                 a, ga = _render(params, cam, mode, "cpu", {}, "cpu")
@@ -310,7 +365,7 @@ def run_agreement(ctx: Context) -> dict:
 def _gsplat_calls(params, cam, device):
     """gsplat's rasterization (packed=False) on the same scene, its camera prepared on the device
     outside the clock; (forward, forward+backward) closures, or None where gsplat is missing."""
-    if os.environ.get("SMGS_GPU_CHECK_GSPLAT") != "built":   # bench/gpu_check.py built it, or not
+    if os.environ.get(GSPLAT_ENV) != "built":   # bench/gpu_check.py built it, or not
         return None
     try:
         import gsplat
@@ -396,13 +451,17 @@ def run_timing(ctx: Context) -> dict:
     why = no_gpu_reason(ctx)
     if why:
         return {"skipped": why}
-    res: dict = {"rows": [], "vs_gsplat": {}, "gsplat": gsplat_version()}
+    res: dict = {"rows": [], "vs_gsplat": {}, "gsplat": gsplat_version(), "gsplat_build": os.environ.get(GSPLAT_ENV)}
     for name in TIMING_SCENES:
-        params, cam = scene(ctx, name)
-        repeats = 3 if ctx.tiny else (5 if name.startswith("rand_1m") else 10)
-        res["rows"] += _timed_rows(ctx, name, params, cam, MODES, repeats)
+        try:
+            params, cam = scene(ctx, name)
+            repeats = 3 if ctx.tiny else (5 if name.startswith("rand_1m") else 10)
+            res["rows"] += _timed_rows(ctx, name, params, cam, MODES, repeats)
+            if ctx.device == "cuda":
+                res["vs_gsplat"][name] = image_vs_gsplat(params, cam)
+        except Exception as e:  # noqa: BLE001 - recorded, the next scene still runs
+            res["rows"].append({"scene": name, "variant": "", "mode": "", "error": f"{type(e).__name__}: {e}"[:500]})
         if ctx.device == "cuda":
-            res["vs_gsplat"][name] = image_vs_gsplat(params, cam)
             torch.cuda.empty_cache()
         ctx.save(res)
     return res
@@ -472,12 +531,14 @@ def run_syncs(ctx: Context) -> dict:
 
 def protocol_command(ctx: Context, which: str, out_dir: Path) -> list[str]:
     base = [sys.executable, "-m", "protocols.run", f"out_dir={out_dir}", f"device={ctx.device}"]
+    methods = f"grid.methods=[{','.join(FOX_METHODS)}]"
     if which == "fox" and not ctx.tiny:
         fox = (ctx.shared or ROOT.parent / "shared") / "data" / "fox"
-        return base + ["dataset=transforms", f"dataset.path={fox}", "grid.methods=[3dgs,softmax_gs]",
-                       "budget=full", "protocol.steps=3000", "report=false"]
+        # the final evaluation only, without FLIP: the figures the stage reports, in its deadline
+        return base + ["dataset=transforms", f"dataset.path={fox}", methods, "budget=full", "protocol.steps=3000",
+                       "report=false", "eval.fractions=[1.0]", "eval.flip=false"]
     if which == "fox":   # the test: the same runner and results on a tiny procedural scene
-        return base + ["+experiment=smoke", "grid.methods=[3dgs,softmax_gs]", "protocol.steps=2", "report=false",
+        return base + ["+experiment=smoke", methods, "protocol.steps=2", "report=false",
                        "dataset.n_views=4", "dataset.width=24", "dataset.height=16", "eval.fps_repeats=1",
                        "eval.flip=false", "eval.fractions=[1.0]"]
     return base + ["+experiment=smoke"] + (["protocol.steps=2", "dataset.n_views=4", "dataset.width=24",
@@ -502,8 +563,8 @@ def _run_protocol(ctx: Context, which: str) -> tuple[dict, Path]:
 
 
 def run_fox(ctx: Context) -> dict:
-    """fox (transforms.json), 3dgs and softmax_gs, full budget, 3000 steps, cpu preset: ms per step,
-    test PSNR, Gaussians (from each run's results.json)."""
+    """fox (transforms.json), FOX_METHODS, full budget, 3000 steps, cpu preset: ms per step, test PSNR,
+    Gaussians (from each run's results.json)."""
     from protocols.results import read_result
 
     why = no_gpu_reason(ctx)
@@ -533,5 +594,5 @@ def run_smoke(ctx: Context) -> dict:
 
 STAGES: dict[str, Callable[[Context], dict]] = {
     "env": run_env, "build": run_build, "pytest": run_pytest, "agreement": run_agreement, "timing": run_timing,
-    "syncs": run_syncs, "fox": run_fox, "smoke": run_smoke,
+    "syncs": run_syncs, "fox": run_fox, "smoke": run_smoke, "pytest-train": run_pytest_train,
 }

@@ -7,23 +7,24 @@ does propagate; the run then resumes from its last checkpoint next time.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from smgs.env import versions
 from protocols.cell_lock import cell_lock
+from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_in
 from protocols.live_cells import live_cell
-from protocols.results import RESULTS_FILE, RunResult, atomic_write_text, config_hash, read_result, write_result
+from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
+                               read_result, write_result)
 from protocols.run_settings import CellSettings, cell_settings
 from protocols.sections import BudgetConfig
 from smgs.train.config import earlier_train_keys
 
 LOG = "log.txt"
-# Keys of a cell's config that do not change its result (where and how it runs).
-VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
-            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
@@ -43,16 +44,22 @@ def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
     return config_hash(ident)
 
 
-def _logger(run_dir: Path) -> logging.Logger:
+@contextlib.contextmanager
+def _logger(run_dir: Path) -> Iterator[logging.Logger]:
+    """The cell's log file ``run_dir/log.txt`` for the block (closed after it: a rerun's folder is
+    swapped in under another name, and the next run of the cell opens its own)."""
     log = logging.getLogger(f"smgs.run.{run_dir}")
     log.setLevel(logging.INFO)
     log.propagate = False
-    if not log.handlers:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        fh = logging.FileHandler(run_dir / LOG)
-        fh.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
-        log.addHandler(fh)
-    return log
+    run_dir.mkdir(parents=True, exist_ok=True)
+    fh = logging.FileHandler(run_dir / LOG)
+    fh.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
+    log.addHandler(fh)
+    try:
+        yield log
+    finally:
+        log.removeHandler(fh)
+        fh.close()
 
 
 def _identity(cfg: dict) -> dict[str, Any]:
@@ -73,7 +80,8 @@ def with_device(cfg: dict) -> dict:
 
 
 def run_cell(payload: dict) -> dict:
-    """payload: {"key", "run_dir", "config" (resolved dict)}. Returns a small summary."""
+    """payload: {"key", "run_dir", "config" (resolved dict), optionally "settings" (the config's
+    ``CellSettings``, made when the cell was planned)}. Returns a small summary."""
     from smgs.device import DeviceError
 
     run_dir = Path(payload["run_dir"])
@@ -81,7 +89,7 @@ def run_cell(payload: dict) -> dict:
         cfg: dict = with_device(payload["config"])
     except DeviceError as e:   # before anything is written: no half-made run directory
         return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
-    settings = cell_settings(cfg)   # the config resolved once: the hash and the method read it
+    settings = payload.get("settings") or cell_settings(cfg)   # made once: the hash and the method read it
     h = result_hash(cfg, settings)
     base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
     try:
@@ -94,35 +102,72 @@ def run_cell(payload: dict) -> dict:
                         "error": f"held by {holder.describe()}, which is writing this cell; left to it "
                                  "(rerun later to pick up its result, or on_busy=wait to wait for it)"}
             return _run_locked(payload["key"], cfg, settings, run_dir, h, base)
+    except LeftAlone as e:   # nothing is written: the folder is not ours to change
+        return {"key": payload["key"], "status": "failed", "error": str(e)}
     except Exception as e:  # the folder or its lock is the problem: recorded where it can be
         return _failed(payload["key"], run_dir, base, e, None)
 
 
 def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: str, base: RunResult) -> dict:
-    """The cell's run, with its folder's lock held (``protocols.cell_lock``)."""
-    log = None
-    try:
-        if _finished(run_dir / RESULTS_FILE, h, bool(cfg.get("force", False))):
-            return {"key": key, "status": "ok", "skipped": True}   # finished by the lock's last holder
-        log = _logger(run_dir)
-        if cfg.get("force", False):
-            from protocols.train_loop import discard_checkpoints
+    """The cell's run, with its folder's lock held (``protocols.cell_lock``). A finished result of
+    another config (or under ``force``) is kept whole until this run's own is complete: the run
+    then works in the folder beside it (``protocols.cell_rerun``) and is swapped in at the end."""
+    force = bool(cfg.get("force", False))
+    if _finished(run_dir / RESULTS_FILE, h, force):
+        return {"key": key, "status": "ok", "skipped": True}   # finished by the lock's last holder
+    kept = _finished_result(run_dir / RESULTS_FILE)
+    if kept is not None and not force:
+        _check_same_model(kept, cfg, run_dir)
+    work = run_dir if kept is None else rerun_dir(run_dir)
+    if kept is not None:
+        remove_leftovers(run_dir)
+        if not force and _finished(work / RESULTS_FILE, h, False):   # stopped before its swap: finish it
+            swap_in(work, run_dir)
+            return {"key": key, "status": "ok", "psnr": read_result(run_dir / RESULTS_FILE).metrics.get("psnr")}
+    with _logger(work) as log:
+        try:
+            if kept is not None:
+                log.info("%s holds the finished result of config %s; it stays there until this run (config %s) "
+                         "is complete, which works in %s", run_dir, kept.config_hash, h, work)
+            if force:
+                from protocols.train_loop import discard_checkpoints
 
-            discard_checkpoints(run_dir)  # --force retrains: nothing of an earlier run is resumed
-        atomic_write_text(run_dir / "config.yaml", _yaml(cfg))
-        from protocols.train_loop import train_and_evaluate
-        with live_cell(run_dir):
-            result = train_and_evaluate(cfg, settings, run_dir, base, log)
-        if result.config_hash != h:  # a result is only ever recorded under its own config
-            raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
-    except KeyboardInterrupt:
-        if log:
-            log.info("interrupted; rerun to resume from the last checkpoint")
-        raise
-    except Exception as e:  # recorded; the sweep goes on
-        return _failed(key, run_dir, base, e, log)
-    write_result(run_dir, result)
+                discard_checkpoints(work)  # --force retrains: nothing of an earlier run is resumed
+            atomic_write_text(work / CONFIG_FILE, _yaml(cfg))
+            from protocols.train_loop import train_and_evaluate
+            with live_cell(run_dir):
+                result = train_and_evaluate(cfg, settings, work, base, log)
+            if result.config_hash != h:  # a result is only ever recorded under its own config
+                raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
+        except KeyboardInterrupt:
+            log.info("interrupted; rerun to resume from the last checkpoint"
+                     + (f" (the finished result in {run_dir} is untouched)" if kept is not None else ""))
+            raise
+        except Exception as e:  # recorded; the sweep goes on
+            out = _failed(key, work, base, e, log)
+            if kept is not None:
+                out["error"] += f" (the finished result of config {kept.config_hash} in {run_dir} is kept)"
+            return out
+        if work != run_dir:
+            result = _relocated(result, work, run_dir)
+        write_result(work, result)
+    if work != run_dir:
+        swap_in(work, run_dir)
     return {"key": key, "status": "ok", "psnr": result.metrics.get("psnr")}
+
+
+def _relocated(result: RunResult, work: Path, run_dir: Path) -> RunResult:
+    """``result`` with the paths it records below ``work`` named where they will be, below ``run_dir``."""
+    def move(x):
+        if isinstance(x, str) and (x == str(work) or x.startswith(f"{work}{os.sep}")):
+            return str(run_dir) + x[len(str(work)):]
+        if isinstance(x, dict):
+            return {k: move(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [move(v) for v in x]
+        return x
+
+    return RunResult.from_dict(move(result.to_dict()))
 
 
 def _device_label(device: str) -> str:
@@ -142,11 +187,39 @@ def _finished(res_path: Path, h: str, force: bool) -> bool:
         raise IsADirectoryError(f"{res_path} is a folder where the run's results file should be; move it away")
     if force or not res_path.exists():
         return False
+    old = _finished_result(res_path)
+    return old is not None and old.config_hash == h
+
+
+def _finished_result(res_path: Path) -> RunResult | None:
+    """The finished (ok) result at ``res_path``, of whatever config; None when there is none or it
+    is unreadable (run again). One of a newer smgs is never replaced: ``LeftAlone``."""
     try:
         old = read_result(res_path)
-    except ValueError:
-        return False  # unreadable: run again
-    return old.status == "ok" and old.config_hash == h
+    except NewerResults as e:
+        raise LeftAlone(f"{e}; nothing was changed (or move the folder away to rerun the cell with this smgs)") from None
+    except (OSError, ValueError):
+        return None
+    return old if old.status == "ok" else None
+
+
+def _check_same_model(kept: RunResult, cfg: dict, run_dir: Path) -> None:
+    """A cell that evaluates a PLY (``protocols.evaluate_ply``) never replaces the evaluation of
+    another file without ``force``: ``LeftAlone`` says how to keep both."""
+    old, new = (kept.source or {}).get("sha256"), (cfg.get("ply") or {}).get("sha256")
+    if not old or not new or old == new:
+        return
+    from protocols.grid import own_budget_name
+
+    path = Path(cfg["ply"]["path"])
+    raise LeftAlone(f"{run_dir} holds the evaluation of {kept.source.get('ply')} (sha256 {old[:12]}…), another "
+                    f"file than {path} (sha256 {new[:12]}…); nothing was changed. To keep both, give this one a "
+                    f"cell of its own: budget.name={own_budget_name(path)} (its own row in the report); to "
+                    "replace that evaluation, add --force")
+
+
+class LeftAlone(RuntimeError):
+    """The cell's folder holds what this run must not replace; nothing of it was changed."""
 
 
 def _failed(key: str, run_dir: Path, base: RunResult, e: Exception, log: logging.Logger | None) -> dict:

@@ -1,8 +1,11 @@
-"""From a cell's config to a Scene: the one place the runner turns dataset config into a loader call."""
+"""From a cell's config to a Scene: the one place the runner turns its dataset section into a scene
+format and a request (``smgs.data.formats``), whatever the format."""
 
 from __future__ import annotations
 
 from protocols.sections import EvalConfig, ProtocolConfig
+from smgs.data.formats import (HARNESS_KEYS, SceneFormat, SceneRequest, check_scene_with, make_scene,
+                               missing_scene)
 from smgs.data.scene import DatasetNotFoundError, Scene
 
 DatasetMissing = DatasetNotFoundError
@@ -11,51 +14,73 @@ DatasetMissing = DatasetNotFoundError
 TRAJECTORY_BETWEEN = 128
 
 
-def _rule(cfg: dict) -> tuple[str, int | None]:
-    """The resolution rule name and, for the cpu preset, its maximum width."""
+def scene_format(cfg: dict) -> tuple[SceneFormat, SceneRequest]:
+    """The cell's scene format, set up from its ``dataset`` section (every key but the harness's own,
+    ``smgs.data.formats.HARNESS_KEYS``, is the format's: a wrong one is refused naming
+    ``dataset.KEY``), and what the cell asks of it: the scene, the data root, the protocol's
+    resolution rule and hold-out, and the benchmark layout of the dataset's name where one is
+    registered (``smgs.data.registry``)."""
+    from smgs.data.registry import dataset_layout, format_class
+    from smgs.train.config import from_dict
+
+    ds = cfg["dataset"]
+    own = {k: v for k, v in ds.items() if k not in HARNESS_KEYS}
+    fmt = from_dict(format_class(str(ds["kind"])), own, _where="dataset")
     proto = ProtocolConfig.of(cfg)
-    rule = cfg["dataset"].get("rule") or proto.resolution
-    return str(rule), (proto.max_width if rule == "cpu" and proto.max_width else None)
+    request = SceneRequest(dataset=str(ds["name"]), scene=str(cfg["scene"]), data_root=cfg.get("data_root"),
+                           rule=proto.resolution, max_width=proto.max_width, test_every=proto.test_every,
+                           layout=dataset_layout(str(ds["name"])))
+    return fmt, request
 
 
 def load_scene_for(cfg: dict) -> Scene:
-    """The scene of a cell (dataset group config + the cell's scene name + protocol)."""
-    from smgs.data.datasets import load_scene
+    """The scene of a cell (dataset section + the cell's scene name + protocol), with the video
+    trajectory the consistency metrics follow when they are on."""
+    fmt, request = scene_format(cfg)
+    return make_scene(fmt, request, TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None)
 
-    ds = cfg["dataset"]
-    kind = ds["kind"]
-    scene = str(cfg["scene"])
-    test_every = ProtocolConfig.of(cfg).test_every
-    traj = TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None
-    if kind == "pattern":
-        from smgs.data.patterns import pattern_scene
 
-        return pattern_scene(scene, int(ds.get("size", 128)))
-    if kind == "procedural":
-        return load_scene("procedural", n_views=int(ds["n_views"]), size=(int(ds["width"]), int(ds["height"])),
-                          test_every=test_every)
-    rule, max_width = _rule(cfg)
-    if ds.get("path"):
-        return load_scene(kind, path=ds["path"], rule=rule, max_width=max_width, test_every=test_every,
-                          trajectory_between=traj)
-    return load_scene(ds["name"], scene=scene, data_root=cfg.get("data_root"), rule=rule,
-                      max_width=max_width, test_every=test_every, trajectory_between=traj)
+def scene_problem(cfg: dict) -> str | None:
+    """Why the cell's scene, which exists (``check_available``), cannot give a meaningful result
+    (None when it can): the format's own check (``smgs.data.formats.ChecksScenes``), done without
+    decoding an image, naming the file and the fix, and what a ``dataset.path`` probably meant."""
+    from smgs.data.scene import SceneFormatError
+
+    fmt, request = scene_format(cfg)
+    try:
+        check_scene_with(fmt, request)
+    except (SceneFormatError, DatasetNotFoundError, ValueError) as e:
+        suggestion = getattr(fmt, "suggestion", None)
+        return f"{_scene_key(cfg, fmt)}: {e}{suggestion() if callable(suggestion) else ''}"
+    return None
+
+
+def _scene_key(cfg: dict, fmt: SceneFormat) -> str:
+    path = getattr(fmt, "path", None)
+    return f"dataset.path={path}" if path else f"{cfg['dataset']['name']} scene {cfg['scene']}"
 
 
 def check_available(cfg: dict) -> str | None:
-    """None if the cell's data is there, else a sentence naming the folder looked in and the layout."""
-    ds = cfg["dataset"]
-    if ds["kind"] in ("pattern", "procedural"):
-        return None
+    """None if the cell's data is there, else a sentence naming where it was looked for (and, for a
+    scene of the paper's datasets, the ``smgs download`` command that gets it)."""
+    fmt, request = scene_format(cfg)
+    missing = missing_scene(fmt, request)
+    if missing is None or getattr(fmt, "path", None):
+        return missing
+    return missing + download_hint(request.dataset, request.scene, cfg.get("data_root"))
+
+
+def download_hint(dataset: str, scene: str, data_root: str | None) -> str:
+    """For a missing scene of the paper's datasets, the ``smgs download`` command that gets it."""
+    import os
     from pathlib import Path
 
-    if ds.get("path"):
-        p = Path(ds["path"])
-        return None if p.exists() else f"{ds['name']}: {p} does not exist"
-    from smgs.data.datasets import get_dataset, resolve_data_root
+    from smgs.data.datasets import DATA_ROOT_ENV
+    from smgs.data.download import SOURCES, download_command
 
-    try:
-        get_dataset(ds["name"]).scene_dir(resolve_data_root(cfg.get("data_root")), str(cfg["scene"]))
-    except DatasetNotFoundError as e:
-        return str(e)
-    return None
+    if dataset not in SOURCES:
+        return ""
+    root = data_root or os.environ.get(DATA_ROOT_ENV)
+    where = Path(root).expanduser().absolute() if root else "DIR"
+    return (f"; get it with: {download_command((dataset,), (scene,), where)}"
+            + ("" if root else f" and set {DATA_ROOT_ENV}=DIR"))

@@ -14,13 +14,40 @@ experiment's report is rebuilt, the pretrained row beside the trained ones.
 
 from __future__ import annotations
 
-import shutil
 import sys
 from pathlib import Path
 
-from protocols.grid import Cell
+from protocols.grid import PRETRAINED as BUDGET, Cell
 
-BUDGET = "pretrained"
+USAGE = """usage: smgs evaluate MODEL.ply [KEY=VALUE ...] [--force]
+       (python -m protocols.evaluate_ply, the same arguments)
+
+Score a 3DGS PLY trained elsewhere under this harness's protocol: its test views rendered and scored
+as a trained run's, with zero training steps; results.json lands in
+<out_dir>/<dataset>/<scene>/<method>/pretrained/seed<seed>/.
+
+arguments:
+  MODEL.ply               the model: the original 3DGS code's point_cloud.ply, gsplat's export_splats,
+                          nerfstudio's ns-export gaussian-splat, or `smgs export`'s
+  KEY=VALUE               overrides of `smgs run`'s config (configs/config.yaml), among them:
+    dataset=NAME            the scene's kind (smgs list datasets): colmap, transforms, mipnerf360, ...
+    dataset.path=DIR        the scene's folder (dataset=colmap or transforms)
+    scene=NAME              which scene of a dataset that holds several
+    protocol=NAME           cpu (default) or paper (smgs list protocols)
+    data_root=DIR           where the named datasets live (default $SMGS_DATA_ROOT, else data)
+    out_dir=DIR             the results root (default runs/<experiment_name>)
+    experiment_name=NAME    the experiment whose report gets the row (default: default)
+    eval.KEY=VALUE          evaluation settings, e.g. eval.flip=false, eval.fps_repeats=2
+    device=auto|cpu|cuda[:N], backend=auto|cpu|cuda|reference
+    report=false            leave the experiment's report as it is
+    budget.name=pretrained-NAME   a cell (and report row) of its own, for a second model of the same
+                            scene: another file is refused in a cell that holds one's evaluation
+  --force                 score it again though the same file and config were scored before, or
+                          replace the evaluation of another file in its cell
+  -h, --help              this text
+
+The method follows from the file (3dgs without Softmax-GS extras: method= is not needed); the
+budget is pretrained. docs/ply.md has the details."""
 
 
 def evaluation_config(ply: Path, overrides: list[str]) -> dict:
@@ -28,11 +55,10 @@ def evaluation_config(ply: Path, overrides: list[str]) -> dict:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from protocols.ply import sha256
+    from protocols.ply import read_scored_ply, sha256
     from protocols.run import CONFIG_DIR, _method_overrides
-    from smgs.io.ply import read_ply
 
-    mode = read_ply(ply).mode   # bad input stops here, before anything is composed or written
+    mode = read_scored_ply(ply).mode   # bad input stops here, before anything is composed or written
     for o in overrides:
         if o.startswith("method=") and o.split("=", 1)[1] != mode:
             raise ValueError(f"{ply} holds a {mode} model; it cannot be evaluated as {o.split('=', 1)[1]!r} "
@@ -55,29 +81,22 @@ def evaluation_config(ply: Path, overrides: list[str]) -> dict:
 
 
 def evaluate_ply(ply: Path | str, overrides: list[str]) -> dict:
-    """Evaluate one PLY; returns ``run_cell``'s summary plus the run directory."""
-    from protocols.cell import result_hash, run_cell
+    """Evaluate one PLY; returns ``run_cell``'s summary plus the run directory. The cell holds one
+    file's evaluation: another file of the same scene is refused there (``protocols.cell``) unless
+    it gets a budget name of its own (``budget.name=pretrained-NAME``) or ``--force`` replaces it."""
+    from protocols.cell import run_cell
     from protocols.cell_scene import check_available
-    from protocols.results import RESULTS_FILE, read_result
-    from protocols.results import POINTER
+    from protocols.grid import check_path_names
 
     ply = Path(ply)
     cfg = evaluation_config(ply, overrides)
     missing = check_available(cfg)
     if missing:
         raise FileNotFoundError(f"missing data: {missing}")
-    cell = Cell(cfg["method"]["name"], cfg["dataset"]["name"], str(cfg["scene"]), BUDGET, int(cfg["seed"]))
+    cell = Cell(cfg["method"]["name"], cfg["dataset"]["name"], str(cfg["scene"]), str(cfg["budget"]["name"]),
+                int(cfg["seed"]))
+    check_path_names(str(cfg.get("experiment_name", "")), [cell])
     run_dir = Path(cfg["out_dir"]) / cell.key
-    res = run_dir / RESULTS_FILE
-    try:
-        done = res.is_file() and not cfg.get("force") and read_result(res).config_hash == result_hash(cfg) \
-            and read_result(res).status == "ok"
-    except ValueError:
-        done = False
-    if not done:  # a checkpoint left by another file (or an older evaluation) must not be resumed
-        (run_dir / POINTER).unlink(missing_ok=True)
-        for old in run_dir.glob("ckpt-*"):
-            shutil.rmtree(old, ignore_errors=True)
     summary = run_cell({"key": cell.key, "run_dir": str(run_dir), "config": cfg})
     summary["run_dir"] = str(run_dir)
     if cfg.get("report"):
@@ -91,12 +110,18 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--force" in argv:
         argv = [a for a in argv if a != "--force"] + ["force=true"]
-    plys = [a for a in argv if "=" not in a]
-    if len(plys) != 1 or argv[:1] in (["-h"], ["--help"]):
-        print(__doc__, file=sys.stderr)
+    if "-h" in argv or "--help" in argv:
+        print(USAGE)
+        return 0
+    from protocols.ply import is_ply_argument
+
+    plys = [a for a in argv if is_ply_argument(a)]
+    if len(plys) != 1:
+        what = "no model given" if not plys else f"one model at a time, got {len(plys)}: {' '.join(plys)}"
+        print(f"{USAGE}\n\nerror: {what}", file=sys.stderr)
         return 2
     try:
-        s = evaluate_ply(plys[0], [a for a in argv if "=" in a])
+        s = evaluate_ply(plys[0], [a for a in argv if not is_ply_argument(a)])
     except (OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -13,7 +13,7 @@ import os
 import traceback
 from typing import Any, Callable
 
-from protocols.progress import progress
+from protocols.progress import cell_status, progress
 
 Payload = dict[str, Any]
 Summary = dict[str, Any]
@@ -41,12 +41,47 @@ def on_sigterm(signum: int, frame: object) -> None:
     raise Terminated()
 
 
-def _init_worker(threads: int) -> None:
+def _init_worker(threads: int, parent: int) -> None:
     import signal
+    import threading
 
     import torch
     torch.set_num_threads(threads)
     signal.signal(signal.SIGTERM, on_sigterm)  # a terminated worker stops its cell cleanly too
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True, name="smgs-parent-watch").start()
+
+
+def _watch_parent(parent: int, every: float = 1.0, grace: float = 60.0) -> None:
+    """A local worker ends with the sweep that started it (killed with SIGKILL, it cannot stop its
+    workers): once its parent is gone, the running cell is stopped as by SIGTERM (its checkpoint
+    stays for the next run) and the worker exits; after ``grace`` seconds it exits in any case."""
+    import signal
+    import time
+
+    while os.getppid() == parent:
+        time.sleep(every)
+    os.kill(os.getpid(), signal.SIGTERM)   # an idle worker ends here; a busy one in _in_worker
+    time.sleep(grace)
+    os._exit(128 + signal.SIGTERM)
+
+
+def _in_worker(fn: Callable[[Payload], Summary], payload: Payload, parent: int) -> Summary:
+    """``fn(payload)`` in a local worker, which exits after it when its sweep is gone (no one would
+    read its summary or send it another cell)."""
+    import signal
+
+    try:
+        return fn(payload)
+    finally:
+        if os.getppid() != parent:
+            os._exit(128 + signal.SIGTERM)
+
+
+def _advance(bar, summary: Summary) -> None:
+    """One cell done: its name and status first, so that the line the step prints (a log's, where
+    output is no terminal) names this cell and not the one before."""
+    bar.set_postfix_str(f"{summary.get('key')}: {cell_status(summary)}")
+    bar.update(1)
 
 
 def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str = "sequential",
@@ -60,14 +95,13 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
         if kind == "sequential":
             for i, p in enumerate(payloads):
                 out[i] = fn(p)
-                bar.update(1)
-                bar.set_postfix_str(f"{p.get('key')}: {out[i]['status']}")
+                _advance(bar, out[i])
         elif kind == "local":
             threads = max(1, (os.cpu_count() or 1) // max(1, workers))
             ctx = mp.get_context("spawn")  # no forked torch/OpenMP state
             with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                                        initargs=(threads,)) as pool:
-                futs = {pool.submit(fn, p): i for i, p in enumerate(payloads)}
+                                        initargs=(threads, os.getpid())) as pool:
+                futs = {pool.submit(_in_worker, fn, p, os.getpid()): i for i, p in enumerate(payloads)}
                 try:
                     for f in cf.as_completed(futs):
                         i = futs[f]
@@ -75,7 +109,7 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
                             out[i] = f.result()
                         except Exception as e:  # the cell could not even record its failure
                             out[i] = _died(payloads[i], e)
-                        bar.update(1)
+                        _advance(bar, out[i])
                 except BaseException:  # interrupted: stop the workers' cells too, not wait for them
                     pool.shutdown(wait=False, cancel_futures=True)
                     for proc in list(getattr(pool, "_processes", {}).values()):
@@ -111,5 +145,5 @@ def _submitit(fn, payloads, kind, slurm: dict, folder: str, bar) -> list[Summary
         except Exception as e:
             tb = traceback.format_exception_only(type(e), e)[-1].strip()
             out.append(_died(p, tb))
-        bar.update(1)
+        _advance(bar, out[-1])
     return out

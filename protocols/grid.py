@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
+from pathlib import Path
+
+PRETRAINED = "pretrained"
+"""The budget of a model read from a PLY and only evaluated (``protocols.evaluate_ply``)."""
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,10 @@ def expand(methods: list[str], datasets: dict[str, list[str]], budgets: list[str
     return cells
 
 
+NAME_MAX = 255
+"""The longest file or folder name (bytes) of Linux, macOS and Windows file systems."""
+
+
 def path_name_problem(key: str, name: str) -> str | None:
     """Why ``name`` (the value of ``key``) cannot be one folder name below the output root (None
     when it can): a name that becomes a path must not climb out of it or split into folders."""
@@ -61,6 +70,8 @@ def path_name_problem(key: str, name: str) -> str | None:
     bad = [c for c in ("/", "\\", "\0") if c in name]
     if bad:
         return f"{key}={name!r} contains {' and '.join(map(repr, bad))}: it must be one folder name"
+    if len(name.encode()) > NAME_MAX:
+        return f"{key}={name[:40]!r}… is {len(name.encode())} bytes long: a folder name takes at most {NAME_MAX}"
     return None
 
 
@@ -74,3 +85,10 @@ def check_path_names(experiment_name: str, cells: list[Cell]) -> None:
     if problems:
         raise ValueError("; ".join(problems) + " (names become folders below out_dir; set out_dir=PATH to "
                          "write elsewhere)")
+
+
+def own_budget_name(ply: Path) -> str:
+    """A budget name for ``ply``'s own cell, from its name (its folder's for a file named like
+    every 3DGS output, ``point_cloud.ply``)."""
+    stem = ply.parent.name if ply.stem == "point_cloud" and ply.parent.name else ply.stem
+    return f"{PRETRAINED}-" + (re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).strip("._") or "other")

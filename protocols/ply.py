@@ -28,6 +28,25 @@ def sha256(path: Path | str) -> str:
     return h.hexdigest()
 
 
+def read_scored_ply(path: Path | str):
+    """The model of a PLY to be scored (``smgs.io.ply.read_ply``); a file of no Gaussians is refused:
+    it renders the background alone, a score of nothing (a collapsed run's export reads back as
+    written, but is not evaluated as a model)."""
+    from smgs.io.ply import PlyFormatError, read_ply
+
+    splats = read_ply(path)
+    if len(splats) == 0:
+        raise PlyFormatError(path, "0 vertices: a model of no Gaussians, nothing to score",
+                             "a model with at least one Gaussian ('element vertex N', N ≥ 1)")
+    return splats
+
+
+def is_ply_argument(arg: str) -> bool:
+    """Whether a command-line argument names the PLY file rather than a key=value setting: a name
+    ending in .ply is the file even with '=' in it (``iter=30000.ply``)."""
+    return "=" not in arg or arg.lower().endswith(".ply") or Path(arg).is_file()
+
+
 def make_method(cfg: dict, settings: CellSettings, scene, result: RunResult, device: torch.device):
     """The run's method, created with the cell's ``settings`` (``protocols.run_settings.cell_settings``):
     by name to be trained or, when ``cfg["ply"]`` names a file (``protocols.evaluate_ply``), the model
@@ -35,23 +54,22 @@ def make_method(cfg: dict, settings: CellSettings, scene, result: RunResult, dev
     from baselines.registry import create_method
 
     name = cfg["method"]["name"]
-    method_cfg, run = settings.for_method()
+    resolved = settings.for_method()
     src = cfg.get("ply")
     if not src:
-        return create_method(name, scene, method_cfg, device=device, run=run)
+        return create_method(name, scene, device=device, resolved=resolved)
     from baselines.splatting import GaussianSplatting
-    from smgs.io.ply import read_ply
 
     path = Path(src["path"])
     digest = sha256(path)
     if src.get("sha256") and digest != src["sha256"]:
         raise ValueError(f"{path} changed since the run was set up (sha256 {digest[:12]}…, expected "
                          f"{src['sha256'][:12]}…); run protocols.evaluate_ply again")
-    splats = read_ply(path)
+    splats = read_scored_ply(path)
     if splats.mode != name:
         raise ValueError(f"{path} holds a {splats.mode} model (extras: {sorted(splats.extras) or 'none'}), "
                          f"the run is for method {name!r}")
-    method = GaussianSplatting.from_splats(scene, splats, method_cfg, where=path, device=device, run=run)
+    method = GaussianSplatting.from_splats(scene, splats, resolved.config, where=path, device=device, run=resolved.run)
     result.source = {"kind": "pretrained", "trained_here": False, "ply": str(path.resolve()), "sha256": digest,
                      "format": splats.meta.get("format"), "sh_degree": splats.sh_degree,
                      "num_gaussians": len(splats), "written_by": "smgs" if "version" in splats.meta else "another tool",

@@ -49,6 +49,16 @@ class LineProgress:
             self._line(time.monotonic())
 
 
+def cell_status(summary: dict[str, Any]) -> str:
+    """What a cell's summary stands for, in its progress line and the run's closing count: a cell
+    left alone because it finished before is not called ``ok`` as if it had just run."""
+    if summary.get("skipped"):
+        return "skipped (finished before)"
+    if summary.get("busy"):
+        return "skipped (another process is writing it)"
+    return str(summary["status"])
+
+
 def progress(total: int, desc: str, initial: int = 0, unit: str = "step", position: int = 0,
              leave: bool = True, disable: bool = False) -> tqdm | LineProgress:
     """A tqdm bar where stderr is a terminal, else :class:`LineProgress` (disabled: a silent one)."""

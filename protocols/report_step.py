@@ -1,9 +1,10 @@
 """The report as the last step of a run: a call in this process to the builder the config names.
 
 protocols sit below reports (smgs <- baselines <- protocols <- reports), so the runner imports no
-report code: ``report_builder`` in configs/config.yaml names it (``module:function``, by default
-``reports.build:build_report``), and the runner looks it up when the sweep ends, as Hydra looks up a
-``_target_``. Any function that takes the runs directory and returns the path of what it wrote fits.
+report code and names none: ``report_builder`` in configs/config.yaml names it (``module:function``;
+the config is the one home of the default), and the runner looks it up when the sweep ends, as Hydra
+looks up a ``_target_``. Any function that takes the runs directory and returns the path of what it
+wrote fits.
 """
 
 from __future__ import annotations
@@ -11,8 +12,6 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from pathlib import Path
-
-DEFAULT_BUILDER = "reports.build:build_report"
 
 
 class ReportFailed(RuntimeError):
@@ -22,15 +21,18 @@ class ReportFailed(RuntimeError):
 def builder(spec: str | None) -> Callable[[Path], Path | str]:
     """The function ``spec`` (``module:function``) names; a spec that names none is an error saying
     what was looked for."""
-    spec = spec or DEFAULT_BUILDER
+    if not spec:
+        raise ValueError("report_builder is not set: name the function that builds the report as module:function "
+                         "(configs/config.yaml names the harness's), or report=false builds none")
     module, sep, name = spec.partition(":")
     if not sep or not module or not name:
-        raise ValueError(f"report_builder={spec!r}: expected module:function, e.g. {DEFAULT_BUILDER}")
+        raise ValueError(f"report_builder={spec!r}: expected module:function (configs/config.yaml names the "
+                         "harness's builder)")
     try:
         fn = getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as e:
-        raise ValueError(f"report_builder={spec!r} names no function ({e}); the default is {DEFAULT_BUILDER}, "
-                         "or report=false builds no report") from e
+        raise ValueError(f"report_builder={spec!r} names no function ({e}); configs/config.yaml names the "
+                         "harness's builder, or report=false builds no report") from e
     if not callable(fn):
         raise ValueError(f"report_builder={spec!r} is not callable")
     return fn

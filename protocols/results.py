@@ -18,6 +18,9 @@ from smgs.atomic import atomic_write_text
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"
 POINTER = "checkpoint.json"   # in a run directory: which checkpoint is its last
+# Keys of a cell's config that do not change its result (where and how it runs).
+VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
+            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 @dataclass
@@ -74,21 +77,36 @@ class RunResult:
     data: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=dict)
     schema: int = SCHEMA_VERSION
+    # fields this smgs does not know (added by a newer one within the same schema): kept, written back
+    other_fields: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        other = d.pop("other_fields")
+        return {**{k: v for k, v in other.items() if k not in d}, **d}
 
     @staticmethod
     def from_dict(d: dict) -> "RunResult":
         d = dict(d)
-        if d.get("schema", SCHEMA_VERSION) > SCHEMA_VERSION:
-            raise ValueError(f"results schema {d['schema']} is newer than this smgs ({SCHEMA_VERSION})")
+        schema = d.get("schema", SCHEMA_VERSION)
+        if not isinstance(schema, int) or isinstance(schema, bool):
+            raise ValueError(f"results schema {schema!r} is not a schema number")
+        if schema > SCHEMA_VERSION:
+            raise NewerResults(schema)
         d["curve"] = [CurvePoint(**c) for c in d.get("curve", [])]
-        known = RunResult.__dataclass_fields__
-        unknown = set(d) - set(known)
-        if unknown:
-            raise ValueError(f"unknown fields in results: {sorted(unknown)}")
-        return RunResult(**d)
+        known = set(RunResult.__dataclass_fields__) - {"other_fields"}
+        other = {k: d.pop(k) for k in sorted(set(d) - known)}
+        return RunResult(**d, other_fields=other)
+
+
+class NewerResults(ValueError):
+    """A results file of a newer schema than this smgs reads: it is left as it is, never rewritten."""
+
+    def __init__(self, schema: int, path: Path | None = None):
+        self.schema = schema
+        where = "" if path is None else f"{path}: "
+        super().__init__(f"{where}written by a newer smgs (results schema {schema}; this smgs reads schema "
+                         f"{SCHEMA_VERSION}): upgrade smgs to read it or to rerun its cell")
 
 
 def config_hash(config: dict) -> str:
@@ -107,12 +125,18 @@ def read_result(path: Path | str) -> RunResult:
     path = Path(path)
     try:
         return RunResult.from_dict(json.loads(path.read_text()))
+    except NewerResults as e:
+        raise NewerResults(e.schema, path) from None
     except (json.JSONDecodeError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: not a valid smgs results file ({e})") from e
 
 
 def find_results(root: Path | str) -> list[Path]:
-    return sorted(Path(root).rglob(RESULTS_FILE))
+    """Every results.json below ``root``, except those in hidden folders (a rerun's work in progress
+    beside a finished cell, ``protocols.cell_rerun``; a report being built)."""
+    root = Path(root)
+    return sorted(p for p in root.rglob(RESULTS_FILE)
+                  if not any(part.startswith(".") for part in p.relative_to(root).parts[:-1]))
 
 
 def _json_default(o):

@@ -8,6 +8,7 @@ them); a failing cell is recorded and the sweep goes on.
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import sys
@@ -19,11 +20,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from protocols.executors import Terminated, on_sigterm
 from protocols.grid import Cell, check_path_names, expand, path_name_problem
+from protocols.method_defaults import register as register_method_defaults
 
 log = logging.getLogger("smgs.protocols")
 
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+register_method_defaults()   # the built-in methods' configs take the trainer's defaults from the code (Hydra's store)
 GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "seeds=", "scene=", "method.name=")
 
 
@@ -33,6 +36,15 @@ def _method_overrides(method: str) -> list[str]:
     if (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
         return [f"method={method}"]
     return ["method=plugin", f"method.name={method}"]
+
+
+def _dataset_overrides(dataset: str) -> list[str]:
+    """A dataset with a yaml in configs/dataset/ is composed from it; a scene format or benchmark
+    dataset registered only through the ``smgs.datasets`` entry point, from configs/dataset/plugin.yaml
+    with its name as the dataset's name and kind (its settings: ``+dataset.KEY=VALUE``)."""
+    if (Path(CONFIG_DIR) / "dataset" / f"{dataset}.yaml").exists():
+        return [f"dataset={dataset}"]
+    return ["dataset=plugin", f"dataset.name={dataset}", f"dataset.kind={dataset}"]
 
 
 def _budget_group(budget: str, overrides: list[str]) -> str:
@@ -56,8 +68,9 @@ def _cell_config(cell: Cell, overrides: list[str]) -> dict:
     from hydra import compose
 
     # the user's key=value apply to every cell; the cell's own groups always win
-    own = [f"budget={_budget_group(cell.budget, overrides)}" if o.startswith("budget=") else o
-           for o in cell.overrides()[1:]]
+    own = [x for o in cell.overrides()[1:] for x in (
+        [f"budget={_budget_group(cell.budget, overrides)}"] if o.startswith("budget=") else
+        _dataset_overrides(cell.dataset) if o.startswith("dataset=") else [o])]
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith(GRID_KEYS)]
                   + _method_overrides(cell.method) + own)
     return OmegaConf.to_container(cfg, resolve=True)
@@ -66,12 +79,16 @@ def _cell_config(cell: Cell, overrides: list[str]) -> dict:
 def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
     from hydra import compose
 
+    from smgs.data.registry import default_scenes
+
     cfg = compose(config_name="config", overrides=[o for o in overrides if not o.startswith("dataset=")]
-                  + [f"dataset={dataset}"])
+                  + _dataset_overrides(dataset))
     ds = OmegaConf.to_container(cfg.dataset, resolve=True)
     scenes = ds.get("scenes")
     if not scenes and ds.get("path") not in (None, "???"):
         scenes = [Path(str(ds["path"])).name]  # a dataset given by its folder: the folder's name
+    if not scenes:
+        scenes = list(default_scenes(str(ds["kind"]), str(ds["name"])))   # a plugin's own
     if not scenes:
         raise ValueError(f"dataset {dataset!r} needs the scene's folder: add dataset.path=/path/to/scene "
                          f"(configs/dataset/{dataset}.yaml lists no scenes of its own)")
@@ -131,25 +148,51 @@ def grid_datasets(cfg: DictConfig, overrides: list[str]) -> tuple[list[str], lis
 
 def check_command_line(args: list[str]) -> str | None:
     """A command-line mistake Hydra would only answer with its own words: what is wrong and the fix."""
-    if _given(args, "dataset.path") is not None and _given(args, "dataset") is None:
+    if _given(args, "dataset.path") is not None and _given(args, "dataset") is None \
+            and _given(args, "grid.datasets") is None:
         return ("dataset.path names a scene folder of the dataset kinds that take one: add dataset=colmap "
                 "(images/ and sparse/0/) or dataset=transforms (transforms.json) before it")
+    dataset = _given(args, "dataset")
+    if dataset is not None and not (Path(CONFIG_DIR) / "dataset" / f"{dataset}.yaml").exists():
+        return unknown_dataset(dataset)
+    method = _given(args, "method")
+    if method is not None and not (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
+        return unknown_method(method, "method")
     return None
 
 
-def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
-    """The grid's cells and their payloads (resolved configs and run directories)."""
-    from baselines.registry import get_spec
+def unknown_method(name: str, key: str) -> str:
+    """The one-block message for a method name (given as ``key``) that no config file or registry
+    knows, listing the known ones; a registered plugin method without a file runs through the grid."""
+    from baselines.registry import list_methods
 
-    grid = cfg.grid
-    for m in grid.methods:
-        get_spec(str(m))  # an unknown method stops here, naming the registered ones
-    names, scenes = grid_datasets(cfg, overrides)
-    datasets = {d: _scenes_of(d, overrides) for d in names}
-    seeds, seeds_of = grid_seeds(cfg, overrides)
-    cells = expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds,
-                   scenes, seeds_of)
+    known = list_methods()
+    if name in known:
+        return f"{key}={name} is a plugin method without a file in configs/method/: run it with grid.methods=[{name}]"
+    return f"{key}={name} is no method; known methods: {', '.join(known)}"
+
+
+def unknown_dataset(name: str) -> str:
+    """The one-block message for ``dataset=NAME`` without a file in configs/dataset/: a registered
+    plugin scene format or dataset runs through the grid; another name lists the known ones."""
+    from smgs.data.registry import list_names
+
+    if name in list_names():
+        return (f"dataset={name} is a plugin scene format or dataset without a file in configs/dataset/: run it "
+                f"with grid.datasets=[{name}] (its settings as +dataset.KEY=VALUE)")
+    files = sorted(p.stem for p in (Path(CONFIG_DIR) / "dataset").glob("*.yaml") if p.stem != "plugin")
+    return f"dataset={name} is no dataset; known: {', '.join(files)} (and the scene formats {', '.join(list_names())})"
+
+
+def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]:
+    """The grid's cells and their payloads (resolved configs, run directories and the method's
+    settings made from each config once: ``protocols.run_settings.cell_settings``). A grid that
+    cannot run (an unknown method or scene, an empty list, a bad seed count or folder name) stops
+    here in the one-block form, before anything runs."""
+    from protocols.run_settings import cell_settings
+
     try:
+        cells = grid_cells(cfg, overrides)
         check_path_names(str(cfg.experiment_name), cells)
     except ValueError as e:
         raise SystemExit(f"invalid config, nothing was run: {e}") from None
@@ -160,8 +203,31 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
             ccfg = _cell_config(c, overrides)
         except ValueError as e:   # ours (a budget with no file); Hydra's own errors keep their words
             raise SystemExit(f"invalid config, nothing was run: {e}") from None
-        payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg})
+        payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg, "settings": cell_settings(ccfg)})
     return cells, payloads
+
+
+def grid_cells(cfg: DictConfig, overrides: list[str]) -> list[Cell]:
+    """The grid's cells; a ValueError names the key that makes them impossible."""
+    from baselines.registry import get_spec
+
+    grid = cfg.grid
+    for key in ("methods", "datasets", "budgets"):
+        if not grid[key]:
+            raise ValueError(f"grid.{key} is empty: the experiment would run nothing; list at least one")
+    for m in grid.methods:
+        try:
+            get_spec(str(m))
+        except KeyError:
+            raise ValueError(unknown_method(str(m), "grid.methods")) from None
+    names, scenes = grid_datasets(cfg, overrides)
+    datasets = {d: _scenes_of(d, overrides) for d in names}
+    seeds, seeds_of = grid_seeds(cfg, overrides)
+    unseeded = [str(m) for m in grid.methods if not seeds_of.get(str(m), seeds)]
+    if unseeded:
+        raise ValueError(f"no seed to run for {', '.join(unseeded)}: grid.seeds is empty; list at least one "
+                         "(grid.seeds=[0]) or give seeds=N")
+    return expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds, scenes, seeds_of)
 
 
 def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], dict[str, list[int]]]:
@@ -184,17 +250,45 @@ def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], d
 
 
 def _preflight(payloads: list[dict]) -> None:
-    """With on_missing=error, a missing dataset stops the experiment before anything runs."""
-    from protocols.cell_scene import check_available
+    """Every cell's scene before anything runs, each scene once: missing data stops the experiment
+    under on_missing=error; a scene that is there but cannot give a meaningful result (a folder that
+    is no scene, broken intrinsics or poses, an image listed twice, images too small) stops it
+    whatever on_missing says, naming the file and the fix."""
+    from protocols.cell_scene import check_available, scene_problem
 
-    problems = []
+    missing: dict[str, str] = {}
+    broken: list[str] = []
+    seen: set[str] = set()
     for p in payloads:
-        if p["config"].get("on_missing", "error") == "error":
-            err = check_available(p["config"])
-            if err and err not in problems:
-                problems.append(err)
-    if problems:
-        raise SystemExit("missing data (set on_missing=skip to run what exists):\n  " + "\n  ".join(problems))
+        c = p["config"]
+        key = json.dumps([c["dataset"], c.get("scene"), c.get("protocol"), c.get("data_root")], sort_keys=True,
+                         default=str)
+        if key in seen:
+            continue
+        seen.add(key)
+        err = check_available(c)
+        if err:
+            if c.get("on_missing", "error") == "error":
+                missing[key] = err
+            continue
+        problem = scene_problem(c)
+        if problem and problem not in broken:
+            broken.append(problem)
+    if broken:
+        raise SystemExit("invalid scene, nothing was run:\n  " + "\n  ".join(broken))
+    if missing:
+        raise SystemExit(missing_data_message(list(dict.fromkeys(missing.values())), len(missing) == len(seen)))
+
+
+def missing_data_message(problems: list[str], all_missing: bool) -> str:
+    """The message of an experiment stopped by missing data: where each was looked for, and what to
+    do, which is not on_missing=skip when no scene of the experiment is there (it would run nothing)."""
+    if all_missing:
+        advice = ("no scene of the experiment is there: put the data where the lines below say, or point at it "
+                  "with data_root=PATH (or dataset.path=PATH for your own scene)")
+    else:
+        advice = "set on_missing=skip to run the scenes that are there"
+    return f"missing data, nothing was run ({advice}):\n  " + "\n  ".join(problems)
 
 
 REMOTE_EXECUTORS = ("slurm",)
@@ -225,8 +319,9 @@ def check_devices(payloads: list[dict], executor: str) -> None:
 def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     from protocols.cell import run_cell
     from protocols.executors import execute
+    from protocols.progress import cell_status
 
-    from protocols.validate import validate_payloads
+    from protocols.validate import schedule_warning, validate_payloads
 
     cells, payloads = plan(cfg, overrides)
     if cfg.report:
@@ -239,14 +334,15 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     check_devices(payloads, str(cfg.executor.kind))
     validate_payloads(payloads)
     _preflight(payloads)
+    for warning in dict.fromkeys(w for w in (schedule_warning(p["config"], p["settings"]) for p in payloads) if w):
+        print(f"warning: {warning}", flush=True)
     ex = cfg.executor
     print(f"experiment {cfg.experiment_name}: {len(cells)} run(s) -> {cfg.out_dir}", flush=True)
     summaries = execute(run_cell, payloads, kind=str(ex.kind), workers=int(ex.workers),
                         slurm=OmegaConf.to_container(ex.slurm, resolve=True), folder=str(ex.slurm.folder))
     counts: dict[str, int] = {}
     for s in summaries:
-        k = "skipped (finished before)" if s.get("skipped") else \
-            "skipped (another process is writing it)" if s.get("busy") else s["status"]
+        k = cell_status(s)
         counts[k] = counts.get(k, 0) + 1
         if s["status"] != "ok":
             where = f" (traceback in {s['log']})" if s.get("log") else ""
@@ -302,7 +398,7 @@ def cli() -> None:
         raise SystemExit(2)
     problem = check_command_line(sys.argv[1:])
     if problem:
-        print(f"error: {problem}", file=sys.stderr, flush=True)
+        print(f"error: invalid config, nothing was run: {problem}", file=sys.stderr, flush=True)
         raise SystemExit(2)
     signal.signal(signal.SIGTERM, on_sigterm)
     try:

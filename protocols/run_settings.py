@@ -7,8 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from baselines.method import RunSettings
-from baselines.registry import merge_config, resolved_settings
+from baselines.method import Resolved, RunSettings, merge_config
+from baselines.registry import resolve
 from protocols.sections import BudgetConfig, ProtocolConfig
 
 
@@ -31,22 +31,29 @@ def run_settings(cfg: dict) -> RunSettings:
 
 @dataclass(frozen=True)
 class CellSettings:
-    """What a cell's method is created with, worked out once per cell: the hash of its result
-    (``protocols.cell.result_hash``) and the method (``protocols.ply.make_method``) both read it.
-    ``resolved``: the method's complete settings (``baselines.method.ResolvedSettings``), None for a
-    method that gives none or a config it refuses. ``error``: why the method's or the run's settings
-    could not be made from the config; raised where the method is built, so the cell fails with it."""
+    """What a cell's method is created with, worked out once per cell (the runner makes it when it
+    plans the cell; ``protocols.validate``, the hash of its result, ``protocols.cell.result_hash``, and
+    the method, ``protocols.ply.make_method``, all read it). ``method``: the method's settings resolved
+    (``baselines.registry.resolve``: its config, the RunSettings and the complete settings it trains
+    with, a TrainConfig for the built-ins), None where they could not be made. ``run``: the
+    RunSettings, also where the method refused them. ``error``: why they could not be made from the
+    config; raised where the method is built, so the cell fails with it."""
 
-    method: dict[str, Any] | None
+    method: Resolved | None
     run: RunSettings | None
-    resolved: dict[str, Any] | None
     error: Exception | None = None
 
-    def for_method(self) -> tuple[dict[str, Any], RunSettings]:
-        """(the method's settings, the RunSettings) to create the method with, or the error."""
+    @property
+    def resolved(self) -> dict[str, Any] | None:
+        """The method's complete settings as plain data (None for a method that gives none or a
+        config it refuses)."""
+        return self.method.data() if self.method is not None else None
+
+    def for_method(self) -> Resolved:
+        """The resolved settings to create the method with, or the error."""
         if self.error is not None:
             raise self.error
-        return self.method, self.run
+        return self.method
 
 
 def cell_settings(cfg: dict) -> CellSettings:
@@ -55,9 +62,8 @@ def cell_settings(cfg: dict) -> CellSettings:
     try:
         method, run = method_settings(cfg), run_settings(cfg)
     except (KeyError, ImportError, TypeError, ValueError) as e:
-        return CellSettings(None, None, None, e)
+        return CellSettings(None, None, e)
     try:
-        resolved = resolved_settings(cfg["method"]["name"], method, run)
-    except (KeyError, ImportError, TypeError, ValueError):
-        resolved = None   # the method refuses these settings: it raises the error when it is created
-    return CellSettings(method, run, resolved)
+        return CellSettings(resolve(cfg["method"]["name"], method, run), run)
+    except (KeyError, ImportError, TypeError, ValueError) as e:   # the method refuses these settings
+        return CellSettings(None, run, e)

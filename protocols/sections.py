@@ -11,7 +11,7 @@ or of the wrong type is an error naming it (``protocols.validate`` reports it be
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 from smgs.train.config import BUDGETS, budget_threshold, from_dict
 
@@ -56,25 +56,25 @@ class ProtocolConfig:
 @dataclass(frozen=True)
 class BudgetConfig:
     """A budget: its name (a folder of every run), its kind (what densification it sets,
-    ``smgs.train.config.BUDGETS``) and its cap. The gradient threshold is the kind's unless
-    ``densify_grad_threshold`` overrides it (``+budget.densify_grad_threshold=X``)."""
+    ``smgs.train.config.BUDGETS``) and its cap. ``grad_threshold``, the densification gradient
+    threshold that defines it, is the kind's unless the section gives one (``+budget.grad_threshold=X``;
+    ``densify_grad_threshold`` is its earlier name); None for MCMC, which has none."""
 
     name: str                                # full, light, mini, 5pct, cap16, mcmc_256, pretrained, ...
     cap: int | None
     kind: str | None = None                  # full | light | mini | 5pct | cap | mcmc; None: the name
-    densify_grad_threshold: float | None = None
+    grad_threshold: float | None = None      # None: the kind's (smgs.train.config.BUDGETS)
+
+    RENAMED: ClassVar[dict[str, str]] = {"densify_grad_threshold": "grad_threshold"}
 
     def __post_init__(self) -> None:
         kind = self.kind or self.name
         if kind not in BUDGETS:
             raise ValueError(f"budget {self.name!r}: unknown kind {kind!r} (budget.kind); known: {', '.join(BUDGETS)}")
         object.__setattr__(self, "kind", kind)
-
-    @property
-    def grad_threshold(self) -> float | None:
-        """The densification gradient threshold that defines this budget (None: MCMC)."""
-        own = budget_threshold(str(self.kind))
-        return own if self.densify_grad_threshold is None or own is None else float(self.densify_grad_threshold)
+        own = budget_threshold(kind)
+        object.__setattr__(self, "grad_threshold", own if self.grad_threshold is None or own is None
+                           else float(self.grad_threshold))
 
     @classmethod
     def of(cls, cfg: dict[str, Any]) -> "BudgetConfig":
@@ -82,8 +82,8 @@ class BudgetConfig:
 
     def identity(self) -> dict[str, Any]:
         """What defines the budget's result, in the form results were hashed with before the kind had
-        its one name (``preset`` in the YAML then) and the threshold its one home: renaming them kept
-        every finished result valid."""
+        its one name (``preset`` in the YAML then), the threshold its one home and its one name
+        (``densify_grad_threshold`` then): renaming them kept every finished result valid."""
         out: dict[str, Any] = {"name": self.name, "densify_grad_threshold": self.grad_threshold, "cap": self.cap}
         if self.kind != self.name:
             out["preset"] = self.kind

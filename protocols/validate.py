@@ -1,26 +1,47 @@
 """Checks of every cell's resolved config before any cell runs: an impossible setting (a step count
-of 0, a word where a number belongs, an unknown hyperparameter set or backend) stops the sweep
-naming the key, instead of being recorded as a run."""
+of 0, a word where a number belongs, an unknown hyperparameter set, backend, executor or flow
+estimator, a learning rate of nan, images too small to score) stops the sweep naming the key,
+instead of being recorded as a run or failing after training."""
 
 from __future__ import annotations
 
 import math
 from typing import Any
 
+from protocols.run_settings import CellSettings, cell_settings
+from smgs.data.images import MIN_SIDE
+
 # (dotted key, kind, minimum); kind "int" or "number"; a key that is absent or null is not checked
 NUMBERS: tuple[tuple[str, str, float], ...] = (
     ("protocol.steps", "int", 1),
-    ("dataset.steps", "int", 1),
+    ("protocol.test_every", "int", 1),         # 0 would leave no test view to score
+    ("protocol.schedule_steps", "int", 1),     # null: the schedule is not scaled
+    ("protocol.max_width", "int", MIN_SIDE),
+    ("dataset.steps", "int", 1),               # the dataset's other keys are its format's (their RANGES)
     ("seed", "int", 0),
     ("checkpoint_every", "int", 0),
     ("eval.fps_repeats", "int", 1),
     ("eval.fps_warmup", "int", 0),
+    ("eval.viewer_views", "int", 0),
     ("eval.consistency_max_width", "int", 0),
     ("budget.cap", "int", 1),
-    ("budget.densify_grad_threshold", "number", 0),
+    ("budget.grad_threshold", "number", 0),
+    ("executor.workers", "int", 1),
 )
 
 POPPING_RATIO: tuple[str, ...] = ("auto", "on", "off")
+
+
+def _choices() -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """(dotted key, the values it may take) of the settings that name one of a few things."""
+    from protocols.cell_lock import ON_BUSY
+    from protocols.executors import KINDS
+    from smgs.metrics.consistency.flow import ESTIMATORS
+    from smgs.metrics.lpips import NETS
+
+    return (("eval.popping_ratio", POPPING_RATIO), ("eval.flow", ESTIMATORS), ("eval.lpips_net", NETS),
+            ("eval.lpips_input", ("3dgs", "lpips")), ("on_busy", ON_BUSY), ("on_missing", ("error", "skip")),
+            ("executor.kind", KINDS))
 
 
 def _get(cfg: dict, key: str) -> Any:
@@ -44,8 +65,9 @@ def number_problem(key: str, value: Any, kind: str, minimum: float) -> str | Non
     return None
 
 
-def config_problems(cfg: dict) -> list[str]:
-    """Every problem of one cell's resolved config (empty when it can run)."""
+def config_problems(cfg: dict, settings: CellSettings | None = None) -> list[str]:
+    """Every problem of one cell's resolved config (empty when it can run); ``settings``: the cell's
+    (``protocols.run_settings.cell_settings``), made here when not given."""
     problems = []
     for key, kind, minimum in NUMBERS:
         value = _get(cfg, key)
@@ -56,13 +78,10 @@ def config_problems(cfg: dict) -> list[str]:
     fractions = _get(cfg, "eval.fractions") or []
     if not all(number_problem("f", f, "number", 0) is None and 0 < f <= 1 for f in fractions):
         problems.append(f"eval.fractions={fractions!r}: each must be a number in (0, 1]")
-    popping = _get(cfg, "eval.popping_ratio")
-    if popping is not None and popping not in POPPING_RATIO:
-        problems.append(f"eval.popping_ratio={popping!r}: must be one of {', '.join(POPPING_RATIO)}")
-    from protocols.cell_lock import ON_BUSY
-
-    if cfg.get("on_busy", "skip") not in ON_BUSY:
-        problems.append(f"on_busy={cfg.get('on_busy')!r}: must be one of {', '.join(ON_BUSY)}")
+    for key, allowed in _choices():
+        value = _get(cfg, key)
+        if value is not None and value not in allowed:
+            problems.append(f"{key}={value!r}: must be one of {', '.join(allowed)}")
     backend = cfg.get("backend", "auto")
     from smgs.raster.api import BACKEND_NAMES
 
@@ -71,41 +90,71 @@ def config_problems(cfg: dict) -> list[str]:
     if not problems:
         from protocols.sections import BudgetConfig, EvalConfig, ProtocolConfig
 
-        for section in (EvalConfig, ProtocolConfig, BudgetConfig):
+        from protocols.cell_scene import scene_format
+
+        for section in (EvalConfig.of, ProtocolConfig.of, BudgetConfig.of, scene_format):
             try:
-                section.of(cfg)
+                section(cfg)
             except (ValueError, TypeError) as e:
                 problems.append(str(e))
     if not problems:
-        problems += _method_problems(cfg)
+        error = (settings if settings is not None else cell_settings(cfg)).error
+        if error is not None:   # the method's settings as the cell will make them (types, values, names)
+            problems.append(f"method {cfg['method']['name']}: {error} (keys below method.train; dataset.train and "
+                            "the budget set some too)")
     return problems
 
 
-def _method_problems(cfg: dict) -> list[str]:
-    """The method's training config, built as the cell will build it (types, hyperparameter-set and
-    budget names), for the methods trained by ``smgs.train``."""
-    from baselines.registry import method_class, resolve_config
-    from baselines.splatting import GaussianSplatting
-    from baselines.trainer_settings import train_config
-    from protocols.run_settings import method_settings, run_settings
-    from smgs.train.config import TrainConfig, from_dict
+def train_settings(settings: CellSettings):
+    """The cell's ``smgs.train.TrainConfig`` (None for a method that ``smgs.train`` does not train,
+    or settings that could not be made)."""
+    from smgs.train.config import TrainConfig
 
-    name = cfg["method"]["name"]
-    if not issubclass(method_class(name), GaussianSplatting):
-        return []  # another method checks its own config when it is set up
-    try:
-        from_dict(TrainConfig, train_config(resolve_config(name, method_settings(cfg)), run_settings(cfg)))
-    except (ValueError, TypeError, KeyError) as e:
-        return [f"method {name}: {e} (method.train, dataset.train and budget settings)"]
-    return []
+    made = settings.method.settings if settings.method is not None else None
+    return made if isinstance(made, TrainConfig) else None
 
 
 def validate_payloads(payloads: list[dict]) -> None:
     """Stop (SystemExit naming every problem and its cells) if any cell's config cannot run."""
     found: dict[str, list[str]] = {}
     for p in payloads:
-        for problem in config_problems(p["config"]):
+        for problem in config_problems(p["config"], p.get("settings")):
             found.setdefault(problem, []).append(p["key"])
     if found:
         lines = [f"{problem} (in {len(keys)} cell(s), e.g. {keys[0]})" for problem, keys in found.items()]
         raise SystemExit("invalid config, nothing was run:\n  " + "\n  ".join(lines))
+
+
+MIN_REFINE_EVERY = 10
+"""Fewest steps between two densification refinements before a scaled schedule is called degenerate:
+each refinement decides clones and splits on the view-space gradient averaged since the last one
+(3DGS: over 100 steps); over fewer than 10 it follows a few views' noise."""
+
+
+def schedule_warning(cfg: dict, settings: CellSettings | None = None) -> str | None:
+    """Why the 3DGS schedule, scaled to this cell's step count (``protocol.schedule_steps``), no longer
+    does what it is for (None when it does): refinement every few steps, or opacity resets closer than
+    the steps the opacities need to climb back (``reset_every`` < (logit 0.5 − logit reset_value) /
+    opacity lr: 92 steps for 3DGS's values). Names the numbers and the fixes."""
+    settings = settings if settings is not None else cell_settings(cfg)
+    run = settings.run
+    scaled = run is not None and run.schedule_steps and run.steps != run.schedule_steps
+    tc = train_settings(settings) if scaled else None
+    if tc is None or not tc.densify.enabled or tc.densify.refine_start >= run.steps:
+        return None
+    d = tc.densify
+    reset, lr = d.reset_value, tc.optim.opacities_lr
+    recover = math.ceil(-math.log(reset / (1 - reset)) / lr) if lr > 0 else 0
+    bad = []
+    if d.refine_every < MIN_REFINE_EVERY:
+        bad.append(f"refines every {d.refine_every} step(s)")
+    if d.reset_every and d.reset_every < recover:
+        bad.append(f"resets every opacity to {reset:g} every {d.reset_every} steps (they need about {recover} to "
+                   "climb back)")
+    if not bad:
+        return None
+    return (f"protocol.steps={run.steps} scales the 3DGS schedule (written for protocol.schedule_steps="
+            f"{run.schedule_steps}) by {run.steps / run.schedule_steps:g}: it {' and '.join(bad)}, so the run measures "
+            "the squeezed schedule, not the method. For a short run set protocol.schedule_steps=null (the "
+            "schedule unscaled: a run shorter than its refinement start trains its initial points, as "
+            "+experiment=smoke does), or run longer (docs/usage.md, \"Short runs\")")

@@ -11,7 +11,9 @@ previous build listed in its manifest), other files in DIR are kept.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import fcntl
 import io
 import json
 import math
@@ -23,11 +25,12 @@ import traceback
 from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Iterator
 
 from protocols.results import RunResult
 from smgs.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
 from reports.diagnostics import diagnostics_section
-from reports.environment import environment_markdown
+from reports.environment import environment_markdown, this_machine
 from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
@@ -58,9 +61,41 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     over several runs directories is merged as one); returns the path of report.md.
 
     ``stability``: the stiff-case battery's rows (``smgs.raster.stability.stiff_battery``); None runs the
-    battery here if that module is importable; a string is the reason it was not computed."""
+    battery here if that module is importable; a string is the reason it was not computed.
+
+    One build of a report folder runs at a time (``one_build``), and each reads the results once it
+    runs: of two sweeps on one folder that end together, the report built last holds every result
+    of both."""
     runs_dir = Path(runs_dir)
-    out = Path(out_dir) if out_dir is not None else runs_dir / "report"
+    out = (Path(out_dir) if out_dir is not None else runs_dir / "report").resolve()
+    check_out(out)   # before anything is written beside it
+    with one_build(out):
+        return _build(runs_dir, out, stability, also)
+
+
+@contextlib.contextmanager
+def one_build(out: Path) -> Iterator[None]:
+    """Hold the lock of the report folder ``out`` (``flock`` on ``.<out>.lock`` beside it, released
+    by the kernel however its holder ends), waiting for another build of it to finish (said on
+    stderr). With it held, what killed builds left beside ``out`` (half-built folders, a folder put
+    aside by a swap) is no one's and is removed."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.parent / f".{out.name}.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"report: another build of {out} is running; waiting for it, then building with every result",
+                  file=sys.stderr, flush=True)
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            for left in [*out.parent.glob(f".{out.name}.building-*"), *out.parent.glob(f".{out.name}.old-*")]:
+                shutil.rmtree(left, ignore_errors=True)
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: list[Path | str] | tuple) -> Path:
     loaded = load_runs(runs_dir, *also)
     runs = [x.result for x in loaded.runs]
     paper = load_paper()
@@ -93,11 +128,12 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
         files[f"plots/{p.name}"] = p.png
 
     probed = sorted({str(row.get("backend")) for row in stability or [] if row.get("backend")}) if computed_here else []
+    machine = this_machine(probed)   # once, for report.md and report.html alike
     md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
-                   probed, section_plots)
+                   machine, section_plots)
     files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
                               plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
-                              csv_link=lambda name: _link(files, name)).encode()
+                              csv_link=lambda name: _link(files, name), machine=machine).encode()
     _write(out, files, md)
     return out / REPORT
 
@@ -140,7 +176,7 @@ def _guard_plots(build) -> tuple[list[Plot], str | None]:
 
 def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, sections: list[Section],
               plots: list[Plot], plot_error: str | None, diag: Section, diag_plots: list[Plot], stab: Section,
-              runs: list[RunResult], files: dict[str, bytes], probed: list[str],
+              runs: list[RunResult], files: dict[str, bytes], machine: dict[str, str],
               section_plots: dict[str, list[Plot]] | None = None) -> str:
     status = Counter(r.status for r in runs)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -175,7 +211,7 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
     for p in diag_plots:
         out += [f"![{p.caption}](plots/{p.name})", "", f"*{p.caption}*", ""]
     out.append(stab.markdown(link=lambda name: _link(files, name)))
-    out += ["## Environment", "", environment_markdown(runs, probed_backends=probed)]
+    out += ["## Environment", "", environment_markdown(runs, machine)]
     return "\n".join(out).rstrip() + "\n"
 
 
@@ -249,10 +285,7 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     folder that the report does not write (the user's own) are carried over; those of our own that
     the previous build listed in its manifest and this one does not produce are not."""
     out = out.resolve()   # also "." and symlinks: the folder itself is swapped, beside it in its parent
-    if out.is_dir() and not ((out / MANIFEST).exists() or (out / REPORT).exists()) and any(out.iterdir()):
-        # the swap would walk and relink a folder that is not a report's (a runs folder, a home)
-        raise FileExistsError(f"{out} holds files and is not a report folder (no {REPORT}); give --out a new "
-                              "or empty folder, or the report folder of an earlier build")
+    check_out(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
     try:
@@ -267,6 +300,14 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_out(out: Path) -> None:
+    """Refuse a report folder that holds files and is not a report's: the swap would walk and relink
+    a folder of other files (a runs folder, a home)."""
+    if out.is_dir() and not ((out / MANIFEST).exists() or (out / REPORT).exists()) and any(out.iterdir()):
+        raise FileExistsError(f"{out} holds files and is not a report folder (no {REPORT}); give --out a new "
+                              "or empty folder, or the report folder of an earlier build")
 
 
 def _carry_over(old: Path, new: Path, written: set[str]) -> None:

@@ -26,7 +26,7 @@ from protocols.results import RunResult
 from reports.paper import (KMAX_COVERAGE, KMAX_COVERAGE_RANGE, dataset_label, dataset_rank,
                            method_label, row_label, scene_rank)
 from reports.plots import Plot, _png, color
-from reports.runs import Value, is_pattern
+from reports.runs import Value, config_difference, is_pattern
 from reports.stats import mean_sd
 from reports.table_model import Column, Row, Section, Table, percent, sig
 from reports.tables import Context, row_order
@@ -76,7 +76,8 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
         rs = sorted(cells[key], key=lambda r: r.seed)
         per_seed = tuple((r.seed, _coverage(r)) for r in rs)
         mean, sd = mean_sd([x for _, x in per_seed])
-        v = Value(mean, sd, len(per_seed), seeds=per_seed)
+        split = config_difference(rs)   # seeds of different configs are not pooled
+        v = Value.absent(split) if split else Value(mean, sd, len(per_seed), seeds=per_seed)
         label, lnotes = ctx.label((m, b, p), rs)
         if ds == "mipnerf360" and scene in KMAX_COVERAGE:
             kind = "indoor" if KMAX_COVERAGE[scene] > 0.8 else "outdoor"
@@ -86,7 +87,8 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
             paper = Value.absent("the paper gives ≈85% (Mip-NeRF360 indoor) and ≈70% (outdoor) only")
             where = ""
         lo, hi = KMAX_COVERAGE_RANGE
-        verdict = "below 70–85%" if v.mean < lo else ("above 70–85%" if v.mean > hi else "within 70–85%")
+        verdict = "below 70–85%" if mean < lo else ("above 70–85%" if mean > hi else "within 70–85%")
+        verdict = verdict if v.ok else "—"
         rows.append(Row([dataset_label(ds), scene, label], {col.key: v}, {col.key: paper}, label_notes=lnotes,
                         info={"k_max": ", ".join(sorted({k_max(r) for r in rs})), "vs paper range": verdict},
                         csv={"dataset": ds, "scene": scene, "method": m, "budget": b, "preset": p,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import platform
 from collections import Counter
+from typing import Sequence
 
 from protocols.results import RunResult
 from reports.table_model import md_text
@@ -22,7 +23,9 @@ def _version(module: str) -> str:
         return f"not importable ({type(e).__name__})"
 
 
-def this_machine() -> dict[str, str]:
+def this_machine(probed_backends: Sequence[str] = ()) -> dict[str, str]:
+    """The machine that builds the report; ``probed_backends``: the renderer backends its stability
+    battery rendered with (none: the backend row says it was not probed)."""
     env = {"smgs": _version("smgs"), "torch": _version("torch"), "numpy": _version("numpy"),
            "python": platform.python_version(), "cpu": cpu_model(), "git": git_revision(),
            "matplotlib": _version("matplotlib")}
@@ -37,9 +40,18 @@ def this_machine() -> dict[str, str]:
             env["device"] = "cpu"
     except Exception as e:  # noqa: BLE001
         env["gpu"] = f"unknown (torch not importable: {type(e).__name__})"
-    # not probed: checking the compiled backend could build it; the stability rows name their backend
-    env["backend"] = "not probed (the build renders nothing)"
-    return env
+    return with_probed(env, probed_backends)
+
+
+def with_probed(machine: dict[str, str], probed_backends: Sequence[str] | None) -> dict[str, str]:
+    """``machine`` with its backend row: the backends the stability battery rendered with, else "not
+    probed" (checking the compiled backend apart from the battery could build it)."""
+    out = dict(machine)
+    if probed_backends:
+        out["backend"] = f"{', '.join(probed_backends)} (rendered by this report's stability battery)"
+    else:
+        out.setdefault("backend", "not probed (the build renders nothing)")
+    return out
 
 
 def _runs_value(runs: list[RunResult], key: str) -> str:
@@ -66,9 +78,7 @@ def environment_rows(runs: list[RunResult], machine: dict[str, str]) -> list[tup
 def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None,
                          probed_backends: list[str] | None = None) -> str:
     """``probed_backends``: the renderer backends that this build's stability battery rendered with."""
-    machine = dict(machine if machine is not None else this_machine())
-    if probed_backends:
-        machine["backend"] = f"{', '.join(probed_backends)} (rendered by this report's stability battery)"
+    machine = with_probed(machine if machine is not None else this_machine(), probed_backends)
     lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
     for label, ran, here in environment_rows(runs, machine):
         lines.append(f"| {label} | {md_text(ran)} | {md_text(here)} |")

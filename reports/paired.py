@@ -101,12 +101,27 @@ def paired_section(name: str, title: str, rows: list[Row], columns: list[Column]
         return None
     sec = Section(name, title)
     if not any(v.ok and v.n >= 2 for r in out for v in r.values.values()):
-        sec.empty_reason = NO_SEEDS
+        sec.empty_reason = _why_no_pairs(out)
         return sec
     sec.intro.append(_intro())
     sec.blocks.append(Table("", [*how.key_columns, "Comparison"], [delta_column(c) for c in columns], out,
                             info_columns=["Seeds"], rank="none"))
     return sec
+
+
+def _why_no_pairs(rows: list[Row], shown: int = 4) -> str:
+    """Why no row has a paired difference over two or more seeds: one seed per run where some
+    difference is there (of one pair), else each comparison's reasons (a failed method, seeds of
+    different configs, no seed in common)."""
+    if any(v.ok for r in rows for v in r.values.values()):
+        return NO_SEEDS
+    why = {}
+    for r in rows:
+        for v in r.values.values():
+            why.setdefault(v.reason or "no value", []).append(" ".join(r.keys))
+    parts = [f"{', '.join(dict.fromkeys(where))}: {reason}" for reason, where in list(why.items())[:shown]]
+    more = f"; … {len(why) - shown} more" if len(why) > shown else ""
+    return "no paired difference: " + "; ".join(parts) + more
 
 
 def _paired_row(a: Row, b: Row, columns: list[Column], how: Comparison) -> Row:

@@ -21,7 +21,7 @@ from matplotlib.patches import Patch
 
 from protocols.results import RunResult
 from reports.paper import budget_rank, dataset_label, dataset_rank, method_label, method_rank, scene_rank
-from reports.runs import Value, is_pattern, pattern_cap
+from reports.runs import Value, config_difference, is_pattern, pattern_cap
 
 PANELS_PER_FIGURE = 9
 COLORS = {"3dgs": "#1f77b4", "gef_only": "#2ca02c", "softmax_only": "#ff7f0e", "softmax_gs": "#d62728"}
@@ -91,14 +91,15 @@ class Band:
 
 
 def seed_bands(runs: list[RunResult]) -> list[Band]:
-    """One Band per method × budget × preset of ``runs`` (one panel's) with two or more seeds whose
-    curves share at least one evaluation step."""
+    """One Band per method × budget × preset of ``runs`` (one panel's) with two or more seeds of one
+    config whose curves share at least one evaluation step (seeds of different configs are drawn
+    apart, ``reports.runs.config_difference``)."""
     groups: dict[tuple[str, str, str], list[RunResult]] = {}
     for r in runs:
         groups.setdefault((r.method, _budget(r), r.preset), []).append(r)
     bands = []
     for (m, b, p), rs in groups.items():
-        if len(rs) < 2:
+        if len(rs) < 2 or config_difference(rs):
             continue
         by_step = [{c.step: c for c in r.curve} for r in rs]
         steps = sorted(set.intersection(*(set(d) for d in by_step)))

@@ -110,6 +110,10 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
         notes.append("Rows marked (pretrained) are models trained elsewhere, read from a PLY and only evaluated "
                      "here under the same protocol (no train time of ours): " + "; ".join(pre[:5])
                      + (f"; … {len(pre) - 5} more" if len(pre) > 5 else "") + ".")
+    alpha = {f"{r.dataset}/{r.scene}": r.data["alpha_dropped"] for r in runs
+             if isinstance(r.data, dict) and r.data.get("alpha_dropped")}
+    for scene, text in sorted(alpha.items()):
+        notes.append(f"Scene {scene}: {text}.")
     for key, what_ran in (("fps_conditions", "FPS"), ("train_conditions", "Train time")):
         shared = [(r.diagnostics or {}).get(key) or {} for r in runs if r.status == "ok"]
         shared = [c for c in shared if c.get("cells_in_parallel", 1) > 1]

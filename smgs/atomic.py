@@ -3,12 +3,17 @@
 The data goes to a temporary file in the same folder, is fsynced, and is renamed over the target;
 a reader never sees half a file and an interrupted write leaves the previous file intact. The new
 file's mode honours the umask, as a plain ``open(path, "w")`` would (mkstemp alone makes 0600).
+A temporary file's name says which process made it (``owner_tag``): one left by a process that was
+killed midway is removed by the next write of the same file (``remove_stale_temps``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
+import re
+import socket
 import tempfile
 from pathlib import Path
 from typing import BinaryIO, Iterator
@@ -21,7 +26,8 @@ def atomic_file(path: Path | str) -> Iterator[BinaryIO]:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        remove_stale_temps(path)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{owner_tag()}-", suffix=".tmp")
     except OSError as e:
         raise _naming(e, path) from None
     try:
@@ -37,6 +43,42 @@ def atomic_file(path: Path | str) -> Iterator[BinaryIO]:
         if isinstance(e, OSError) and e.filename is None:   # a full disk, an I/O error: say where
             raise _naming(e, path) from None
         raise
+
+
+def owner_tag() -> str:
+    """``<pid>@<host>``: which process on which machine made a temporary file (in its name), so that
+    one left by a killed process is known as such (``remove_stale_temps``)."""
+    host = re.sub(r"[^A-Za-z0-9-]", "", socket.gethostname().split(".")[0]) or "host"
+    return f"{os.getpid()}@{host}"
+
+
+def remove_stale_temps(path: Path | str) -> list[Path]:
+    """Remove the temporary files of ``path`` (``atomic_file``'s) whose writer, a process on this
+    machine, no longer lives: what a write killed midway left (a PLY export's may be hundreds of MB).
+    Returns those removed; a file it cannot remove is left."""
+    path = Path(path)
+    pattern = re.compile(re.escape(f".{path.name}.") + r"(\d+)@([A-Za-z0-9-]+)-[^/]*\.tmp")
+    host = owner_tag().split("@", 1)[1]
+    removed = []
+    for p in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        m = pattern.fullmatch(p.name)
+        if m and m.group(2) == host and not _alive(int(m.group(1))):
+            try:
+                p.unlink()
+                removed.append(p)
+            except OSError:
+                pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:   # another user's process: it lives
+        return True
+    return True
 
 
 def _naming(e: OSError, path: Path) -> OSError:
@@ -86,7 +128,7 @@ def replace_dir(new: Path | str, target: Path | str) -> None:
         return
     if not target.is_dir() or target.is_symlink():
         raise NotADirectoryError(f"{target} is not a folder; move it away to write the new one there")
-    if _exchange(new, target):
+    if exchange_dirs(new, target):
         shutil.rmtree(new, ignore_errors=True)   # now holds the old content
         return
     aside = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.old-"))
@@ -99,8 +141,9 @@ def replace_dir(new: Path | str, target: Path | str) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); False where that is not there."""
+def exchange_dirs(a: Path | str, b: Path | str) -> bool:
+    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); False where that is not there
+    (another system, or a file system without it), and nothing was changed."""
     import ctypes
 
     try:

@@ -1,27 +1,63 @@
-"""``smgs list WHAT``: the methods, experiments, datasets and budgets a command line can name, each
-with the line its config (or its class) gives about it."""
+"""``smgs list WHAT``: the methods, experiments, datasets, budgets and protocol presets a command line
+can name, each with what its config (or its class) says about it."""
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
-from protocols.run import CONFIG_DIR
+GROUPS = {"experiments": "experiment", "datasets": "dataset", "budgets": "budget", "protocols": "protocol"}
+USAGE = "usage: smgs list {" + ",".join(("methods", *GROUPS)) + "}"
+ABOUT_CHARS = 160   # whole sentences of a config's opening comment, up to about this many characters
+SENTENCE_END = re.compile(r"(?<=[.!?])\s+(?=[A-Z\"'(<`])")
 
-GROUPS = {"experiments": "experiment", "datasets": "dataset", "budgets": "budget"}
+
+def sentences(text: str) -> list[str]:
+    """``text`` cut after each full stop that ends a sentence: followed by a capital, and outside
+    brackets (not "supp. Sec. 6" inside "(paper Sec. 4.1, supp. Sec. 6)")."""
+    out, start = [], 0
+    for m in SENTENCE_END.finditer(text):
+        head = text[start:m.start()]
+        if head.count("(") == head.count(")") and head.count("[") == head.count("]"):
+            out.append(head)
+            start = m.end()
+    return out + [text[start:]]
 
 
 def first_comment(path: Path) -> str:
-    """The first comment line of a config file (what it is), without the ``@package`` directive."""
+    """What a config file is: the whole sentences that fit in ``ABOUT_CHARS`` (at least one, never
+    cut) of its opening comment block, without the ``@package`` directive."""
+    block: list[str] = []
     for line in path.read_text().splitlines():
-        text = line.lstrip("# ").strip()
-        if line.startswith("#") and text and not text.startswith("@package"):
-            return text
-    return ""
+        text = line.lstrip("#").strip()
+        if not line.startswith("#") or (block and not text):
+            break
+        if text and not text.startswith("@package"):
+            block.append(text)
+    about = ""
+    for sentence in sentences(" ".join(block)):
+        if about and len(about) + 1 + len(sentence) > ABOUT_CHARS:
+            break
+        about = f"{about} {sentence}".strip()
+    return about
 
 
 def config_entries(group: str) -> list[tuple[str, str]]:
+    from protocols.run import CONFIG_DIR   # here, not above: `smgs --help` imports this module
+
     return [(p.stem, first_comment(p)) for p in sorted((Path(CONFIG_DIR) / group).glob("*.yaml"))]
+
+
+def dataset_entries() -> list[tuple[str, str]]:
+    """The dataset configs (but configs/dataset/plugin.yaml, the runner's stand-in for what follows),
+    then the scene formats and datasets registered as plugins without a file of their own."""
+    from smgs.data.registry import list_names, plugin_source
+
+    entries = [(n, about) for n, about in config_entries("dataset") if n != "plugin"]
+    files = {n for n, _ in entries}
+    return entries + [(n, f"a scene format or dataset from a plugin: grid.datasets=[{n}] ({plugin_source(n)})")
+                      for n in list_names() if plugin_source(n) and n not in files]
 
 
 def method_entries() -> list[tuple[str, str]]:
@@ -36,11 +72,17 @@ def method_entries() -> list[tuple[str, str]]:
 
 
 def main(args: list[str]) -> int:
+    if args and args[0] in ("-h", "--help"):
+        print(f"{USAGE}\n\nWhat a command line can name, one per line with what it is: the methods (method=, "
+              "grid.methods=), experiments (+experiment=), datasets (dataset=), budgets (budget=, grid.budgets=) "
+              "and protocol presets (protocol=).")
+        return 0
     what = args[0] if len(args) == 1 else None
     if what not in ("methods", *GROUPS):
-        print("usage: smgs list {methods,experiments,datasets,budgets}", file=sys.stderr)
+        print(USAGE, file=sys.stderr)
         return 2
-    entries = method_entries() if what == "methods" else config_entries(GROUPS[what])
+    listed = {"methods": method_entries, "datasets": dataset_entries}
+    entries = listed[what]() if what in listed else config_entries(GROUPS[what])
     width = max((len(n) for n, _ in entries), default=0)
     for name, about in entries:
         print(f"{name:<{width}}  {about}".rstrip())

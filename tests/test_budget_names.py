@@ -1,5 +1,7 @@
-"""A budget has one name for its kind (``kind``; ``preset`` before) and one home for what the kind
-sets (``smgs.train.config.BUDGETS``); the renaming kept every finished result's identity."""
+"""A budget has one name for its kind (``kind``; ``preset`` before) and for its gradient threshold
+(``grad_threshold``; ``densify_grad_threshold`` in the budget and ``grow_grad2d`` in the trainer
+before), and one home for what the kind sets (``smgs.train.config.BUDGETS``); the renaming kept
+every finished result's identity."""
 
 import warnings
 from pathlib import Path
@@ -48,7 +50,7 @@ def cell(budget: dict) -> dict:
 def test_run_settings_carry_the_kind_and_its_threshold_or_the_override():
     rs = run_settings(cell({"name": "cap16", "kind": "cap", "cap": 16}))
     assert (rs.budget, rs.budget_kind, rs.grad_threshold, rs.cap) == ("cap16", "cap", 2e-4, 16)
-    rs = run_settings(cell({"name": "5pct", "cap": None, "densify_grad_threshold": 1e-3}))
+    rs = run_settings(cell({"name": "5pct", "cap": None, "grad_threshold": 1e-3}))
     assert (rs.budget_kind, rs.grad_threshold) == ("5pct", 1e-3)
     assert run_settings(cell({"name": "mcmc_4", "kind": "mcmc", "cap": 4})).grad_threshold is None
     with pytest.warns(DeprecationWarning, match="budget_kind"):
@@ -115,6 +117,28 @@ def test_a_result_is_hashed_with_the_earlier_name(monkeypatch):
     cell_module.result_hash(c)
     densify = seen[0]["resolved_settings"]["densify"]
     assert densify["budget"] == "5pct" and "budget_kind" not in densify
+    assert densify["grow_grad2d"] == 4e-3 and "grad_threshold" not in densify
+    assert seen[0]["budget"]["densify_grad_threshold"] == 4e-3
+
+
+def test_the_threshold_has_one_name_and_its_earlier_names_still_read():
+    """``budget.grad_threshold`` is ``RunSettings.grad_threshold`` is ``densify.grad_threshold``; a
+    budget section or a method config written with the earlier name reads as today's (the same
+    identity), one giving both names is refused naming them."""
+    from smgs.train.config import DensifyConfig, TrainConfig, from_dict
+
+    now = BudgetConfig.of({"budget": {"name": "5pct", "cap": None, "grad_threshold": 1e-3}})
+    then = BudgetConfig.of({"budget": {"name": "5pct", "cap": None, "densify_grad_threshold": 1e-3}})
+    assert now == then and now.grad_threshold == 1e-3 and now.identity() == then.identity()
+    assert run_settings(cell({"name": "5pct", "cap": None, "densify_grad_threshold": 1e-3})).grad_threshold == 1e-3
+    with pytest.raises(ValueError, match="'densify_grad_threshold' is the earlier name of 'grad_threshold'"):
+        BudgetConfig.of({"budget": {"name": "5pct", "cap": None, "grad_threshold": 1e-3,
+                                    "densify_grad_threshold": 1e-3}})
+    assert BudgetConfig.of({"budget": {"name": "mcmc_4", "kind": "mcmc", "cap": 4, "grad_threshold": 1e-3}}) \
+        .grad_threshold is None    # MCMC refines by opacity: no threshold to set
+    assert from_dict(DensifyConfig, {"grow_grad2d": 1e-3}).grad_threshold == 1e-3
+    with pytest.raises(ValueError, match="'grow_grad2d' is the earlier name of 'grad_threshold'"):
+        from_dict(TrainConfig, {"densify": {"grow_grad2d": 1e-3, "grad_threshold": 1e-3}})
 
 
 def _plan(overrides: list[str]) -> list[dict]:

@@ -13,6 +13,7 @@ from protocols.results import read_result
 from smgs_cli.main import COMMANDS, main
 
 REPO = Path(__file__).resolve().parent.parent
+CONFIGS = REPO / "configs"
 SCENE = ["dataset.width=32", "dataset.height=24", "dataset.n_views=8", "eval.fps_repeats=1", "eval.flip=false"]
 
 
@@ -32,7 +33,7 @@ def test_help_lists_every_subcommand_and_the_package_installs_the_command(capsys
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
     names = [c.name for c in COMMANDS]
-    assert names == ["run", "report", "evaluate", "export", "list", "bench", "popping", "lpips-weights"]
+    assert names == ["run", "report", "evaluate", "export", "list", "bench", "popping", "lpips-weights", "download"]
     assert all(f"\n  {n} " in text and f"smgs {n} " in text for n in names)
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts == {"smgs": "smgs_cli.main:main"}
@@ -88,8 +89,40 @@ def test_export_then_evaluate_the_ply(runs, tmp_path):
     assert r.status == "ok" and r.source["trained_here"] is False
 
 
+@pytest.mark.parametrize("name", [c.name for c in COMMANDS])
+def test_every_command_answers_help_with_status_0(name, capsys):
+    try:
+        code = main([name, "--help"])
+    except SystemExit as e:   # argparse and Hydra stop with SystemExit(0) after their help
+        code = e.code
+    assert code in (0, None)
+    assert capsys.readouterr().out.strip()
+
+
+def test_evaluate_help_lists_its_options(capsys):
+    assert main(["evaluate", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert all(o in text for o in ("MODEL.ply", "dataset=", "dataset.path=", "scene=", "protocol=", "out_dir=",
+                                   "report=false", "--force"))
+    assert main(["evaluate"]) == 2 and "error: no model given" in capsys.readouterr().err
+
+
+def test_list_descriptions_end_with_a_sentence(capsys):
+    """A config's description is whole sentences of its opening comment, never a line cut off
+    where the comment wraps (mcmc's ended "... with the MCMC strategy at the")."""
+    for what in ("experiments", "datasets", "budgets", "protocols"):
+        assert main(["list", what]) == 0
+        for line in capsys.readouterr().out.splitlines():
+            name, about = line.split(maxsplit=1)
+            block = " ".join(x.lstrip("#").strip() for x in (CONFIGS / what[:-1] / f"{name}.yaml").read_text()
+                             .split("\n\n")[0].splitlines() if x.startswith("#") and "@package" not in x)
+            assert block.startswith(about) and (about == block or about[-1] in ".!?"), (what, line)
+    assert main(["list", "experiments"]) == 0
+    assert "at the paper's cap on Mip-NeRF360 (2593000, the 3DGS count there); 30K steps." in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("what, has", [("methods", "softmax_gs"), ("experiments", "budget5"),
-                                       ("datasets", "colmap"), ("budgets", "5pct")])
+                                       ("datasets", "colmap"), ("budgets", "5pct"), ("protocols", "cpu")])
 def test_list_names_what_a_command_line_can_name(what, has, capsys):
     assert main(["list", what]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -98,7 +131,7 @@ def test_list_names_what_a_command_line_can_name(what, has, capsys):
 
 def test_list_of_something_else_is_a_usage_error(capsys):
     assert main(["list", "scenes"]) == 2
-    assert "smgs list {methods,experiments,datasets,budgets}" in capsys.readouterr().err
+    assert "smgs list {methods,experiments,datasets,budgets,protocols}" in capsys.readouterr().err
 
 
 def test_bench_runs_a_benchmark_of_the_checkout(tmp_path, capsys):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from smgs.data import DatasetNotFoundError, MissingImageError, SceneFormatError, load_dataset_scene, load_scene
+from smgs.data import DatasetNotFoundError, MissingImageError, SceneFormatError, load_scene
 from smgs.data.colmap import load_colmap
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
@@ -114,14 +114,14 @@ def test_dataset_rules_pick_folders(tmp_path):
     scene.mkdir(parents=True)
     for f in ("images", "images_2", "sparse"):
         (scene / f).symlink_to(FERN / f, target_is_directory=True)
-    r3 = load_dataset_scene("mipnerf360", "bonsai", root, rule="3dgs")
+    r3 = load_scene("mipnerf360", "bonsai", data_root=root, rule="3dgs")
     assert (r3.meta["images_folder"], r3.meta["resampling"]) == ("images_2", "png images_2 as shipped")
     assert r3.meta["downscale_factor"] == 2.0 and r3.meta["dataset"] == "mipnerf360"
-    rg = load_dataset_scene("mipnerf360", "bonsai", root, rule="gsplat")
+    rg = load_scene("mipnerf360", "bonsai", data_root=root, rule="gsplat")
     assert rg.meta["resampling"].startswith("PIL BICUBIC from png images") and rg.meta["downscale_factor"] == 2.0
-    rp = load_dataset_scene("mipnerf360", "bonsai", root, rule="paper")  # 504 < 1600: native, not upsampled
+    rp = load_scene("mipnerf360", "bonsai", data_root=root, rule="paper")  # 504 < 1600: native, not upsampled
     assert rp.meta["image_size"] == [504, 378] and rp.meta["rule"] == "paper"
-    rc = load_scene("mipnerf360", scene="bonsai", data_root=root, rule="cpu")
+    rc = load_scene("mipnerf360", "bonsai", data_root=root, rule="cpu")
     assert rc.meta["image_size"] == [400, 300] and "NOT the paper protocol" in rc.meta["rule_label"]
     # The cpu preset starts from the smallest shipped folder still wide enough (252 < 400 here).
     assert rc.meta["images_folder"] == "images"
@@ -129,12 +129,12 @@ def test_dataset_rules_pick_folders(tmp_path):
 
 def test_missing_dataset_names_the_folders_and_layout(tmp_path):
     with pytest.raises(DatasetNotFoundError) as e:
-        load_dataset_scene("tandt", "truck", tmp_path)
+        load_scene("tandt", "truck", data_root=tmp_path)
     assert str(tmp_path / "tandt" / "truck") in str(e.value) and "sparse/0" in str(e.value)
     with pytest.raises(DatasetNotFoundError, match="does not exist"):
         load_colmap(tmp_path / "nowhere")
     with pytest.raises(ValueError, match="unknown mipnerf360 scene"):
-        load_dataset_scene("mipnerf360", "lego", tmp_path)
+        load_scene("mipnerf360", "lego", data_root=tmp_path)
 
 
 def test_missing_model(tmp_path):

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from smgs.data import (DATA_ROOT_ENV, DATASETS, DatasetNotFoundError, ResolutionRule, get_dataset, load_scene,
+from smgs.data import (DATA_ROOT_ENV, DatasetNotFoundError, ResolutionRule, get_dataset, load_scene,
                        resolve_data_root, split_every)
+from smgs.data.formats import with_trajectory
+from smgs.data.registry import BUILTIN_DATASETS
 
 
 def test_split_is_on_name_sorted_order():
@@ -37,7 +39,7 @@ def test_protocol_rules_are_data():
     assert get_dataset("tandt").scenes == ("train", "truck") and get_dataset("tandt").folders[0] == "tandt"
     db = get_dataset("deepblending")
     assert db.folders[0] == "db" and db.rule("paper", "playroom").max_width is None  # native
-    for spec in DATASETS.values():
+    for spec in map(get_dataset, BUILTIN_DATASETS):
         assert "NOT the paper protocol" in spec.rule("cpu", spec.scenes[0]).label
     with pytest.raises(ValueError, match="no resolution rule 'fast'"):
         mip.rule("fast", "bicycle")
@@ -57,13 +59,18 @@ def test_data_root_errors(tmp_path, monkeypatch):
 
 
 def test_load_scene_entry_point():
-    s = load_scene("procedural", n_views=16, size=(48, 32), seed=3, trajectory_between=5)
+    s = load_scene("procedural", n_views=16, width=48, height=32, seed=3, trajectory_between=5)
     assert len(s.train) + len(s.test) == 16 and s.train[0].camera.width == 48
+    assert len(s.trajectory) == 48 and "trajectory" not in s.meta   # a scene's own trajectory is kept
+    s.trajectory = None
+    with_trajectory(s, 5)
     assert s.trajectory is not None and len(s.trajectory) == 7  # 2 test views, 5 frames between
     assert "frames between consecutive test cameras" in s.meta["trajectory"]
     with pytest.raises(ValueError, match="unknown scene kind 'nerf'"):
         load_scene("nerf")
-    with pytest.raises(ValueError, match="needs path"):
+    with pytest.raises(ValueError, match="needs the scene's folder: add dataset.path="):
         load_scene("colmap")
     with pytest.raises(ValueError, match="needs a scene"):
-        load_scene("colmap", dataset="tandt")
+        load_scene("tandt")
+    with pytest.raises(ValueError, match="scene format 'procedural' takes no size; its settings: n_views, width"):
+        load_scene("procedural", size=(48, 32))

@@ -13,7 +13,8 @@ from protocols.results import read_result
 from protocols.run import run_experiment
 from smgs.data.patterns import pattern_scene
 
-pytestmark = [pytest.mark.gpu,
+# slow: they train (bench/gpu_check.py runs them after its fox stage, not with the renderer's tests)
+pytestmark = [pytest.mark.gpu, pytest.mark.slow,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 
 METHODS = ("3dgs", "gef_only", "softmax_only", "softmax_gs")

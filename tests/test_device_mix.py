@@ -88,6 +88,25 @@ def test_the_reference_backend_renders_device_splats_through_a_host_camera(monke
         assert out.rgb.device == OTHER and s["quats"].grad.device == OTHER
 
 
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_a_host_background_is_taken_with_device_splats_also_when_nothing_is_in_view(monkeypatch, backend):
+    """The compiled backends move the background to the splats' device; the reference, which also
+    renders the compiled backends' views with nothing in them (kernel_args.no_splats), did not."""
+    cam = Camera.look_at([0.0, 0.0, -1.0], [0, 0, 3], [0, -1, 0], 12.0, 12.0, 8, 6)
+    bg = torch.tensor([0.1, 0.2, 0.3])      # on the host
+    with simulated_gpu(monkeypatch):
+        for behind in (False, True):
+            s = _splats(6, OTHER)
+            if behind:
+                with torch.no_grad():
+                    s["means3d"][:, 2] = -5.0
+            out = rasterize(s["means3d"], s["quats"], s["scales"], s["opacities"], s["colors"], cam, mode="3dgs",
+                            background=bg, backend=backend)
+            assert out.rgb.device == OTHER
+            if behind:
+                torch.testing.assert_close(out.rgb.cpu(), bg.expand(6, 8, 3), rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("glue", ["verified", "lean"])
 @pytest.mark.parametrize("method", ["3dgs", "softmax_gs"])
 def test_training_steps_on_another_device_than_the_scene(monkeypatch, method, glue):

@@ -50,3 +50,33 @@ def test_inside_smgs_an_import_from_a_lower_group_to_a_higher_one_is_wrong(tmp_p
     assert wrong == [("smgs.raster.cache", "smgs.train.trainer"), ("smgs.stray", import_graph.UNPLACED)]
     assert import_graph.group_of("smgs", import_graph.SMGS_LAYERS) == len(import_graph.SMGS_LAYERS) - 1
     assert import_graph.group_of("smgs.raster.csrc", import_graph.SMGS_LAYERS) == 1
+
+
+def test_imports_by_name_are_edges(tmp_path):
+    """A literal module given to importlib.import_module (or __import__) and a "module:attr" string
+    naming a module of the harness (the registries' form) are imports; other strings are not."""
+    for pkg in import_graph.LAYERS:
+        (tmp_path / pkg).mkdir()
+        (tmp_path / pkg / "__init__.py").write_text("")
+    (tmp_path / "smgs" / "lazy.py").write_text("import importlib\n\ndef f():\n"
+                                               "    return importlib.import_module('reports.table')\n")
+    (tmp_path / "smgs" / "low.py").write_text("from importlib import import_module\nm = import_module('baselines')\n")
+    (tmp_path / "baselines" / "registry.py").write_text('BUILTIN = {"x": "protocols.cell:run_cell"}\n'
+                                                        'NOT_OURS = "numpy.linalg:norm"\nTIME = "12:30"\n'
+                                                        'DOC = "see baselines.registry:BUILTIN below"\n')
+    (tmp_path / "protocols" / "cell.py").write_text("")
+    (tmp_path / "reports" / "table.py").write_text("x = __import__('smgs')\n")
+    known = import_graph.modules(tmp_path)
+    assert import_graph.imports("smgs.lazy", tmp_path / "smgs" / "lazy.py", known) == {"reports.table"}
+    assert import_graph.imports("baselines.registry", tmp_path / "baselines" / "registry.py", known) == \
+        {"protocols.cell"}
+    _, wrong, _ = import_graph.report(tmp_path, smgs_layers=(("smgs", "smgs.lazy", "smgs.low"),))
+    assert wrong == [("baselines.registry", "protocols.cell"), ("smgs.lazy", "reports.table"),
+                     ("smgs.low", "baselines")]
+
+
+def test_the_registries_imports_by_name_are_in_the_graph():
+    known = import_graph.modules(ROOT)
+    assert "baselines.splatting" in import_graph.imports("baselines.registry", known["baselines.registry"], known)
+    assert {"smgs.raster.cpu", "smgs.raster.cuda", "smgs.raster.reference"} <= \
+        import_graph.imports("smgs.raster.api", known["smgs.raster.api"], known)

@@ -1,6 +1,6 @@
 """The install story holds together: the torch that CI and the README install first is inside the
-package's torch range (so pip keeps it), the torch running these tests is too, and CI runs the
-README's test command."""
+package's torch range (so pip keeps it), the torch running these tests is too, CI runs the
+README's test command, and the CPU-only install names the same torch from PyTorch's CPU index."""
 
 from __future__ import annotations
 
@@ -43,3 +43,15 @@ def test_the_readme_opens_with_the_two_commands_and_ci_runs_its_test_command():
     test_command = tests.split("&&")[-1].strip()
     ci = (REPO / ".ci" / "run").read_text().splitlines()
     assert test_command == "python -m pytest" and test_command in ci
+
+
+def test_the_cpu_only_install_takes_the_same_torch_from_pytorchs_cpu_index():
+    """PyPI's torch on Linux x86-64 is the CUDA build; the README and docs/usage.md give a CPU-only
+    machine the same release from PyTorch's CPU wheel index, then the same harness install."""
+    main, _ = readme_commands()
+    pin = re.search(r"torch==([\d.]+)", main)[1]
+    for page in (REPO / "README.md", REPO / "docs" / "usage.md"):
+        found = re.findall(r"pip install torch==([\d.]+) --index-url (\S+)", page.read_text())
+        assert found and set(found) == {(pin, "https://download.pytorch.org/whl/cpu")}, page
+    cpu_line = next(ln for ln in (REPO / "README.md").read_text().splitlines() if "whl/cpu" in ln)
+    assert cpu_line.split("&&", 1)[1].strip() == main.split("&&", 1)[1].strip()   # then the same steps

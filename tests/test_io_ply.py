@@ -13,7 +13,7 @@ import torch
 
 from baselines.registry import create_method
 from baselines.splatting import GaussianSplatting
-from smgs.data.datasets import load_scene
+from smgs.data import load_scene
 from smgs.io.ply import PlyFormatError, read_ply, write_ply
 from smgs.raster import rasterize
 
@@ -22,7 +22,7 @@ METHODS = ["3dgs", "gef_only", "softmax_only", "softmax_gs"]
 
 @pytest.fixture(scope="module")
 def scene():
-    return load_scene("procedural", n_views=8, size=(48, 32), test_every=4)
+    return load_scene("procedural", n_views=8, width=48, height=32, test_every=4)
 
 
 # ---- a minimal writer of the original layout, independent of smgs.io.ply ----------------------

@@ -11,6 +11,7 @@ import torch
 from baselines import (BUILTINS, ENTRY_POINT_GROUP, Method, MethodSpec, SceneNeeds, create_method,
                        get_spec, list_methods, method_class, register, resolve_config, unregister)
 from smgs.data.patterns import pattern_scene
+from plugin_dist import install, uninstall
 
 PLUGIN = textwrap.dedent('''
     import torch
@@ -63,16 +64,9 @@ PLUGIN = textwrap.dedent('''
 @pytest.fixture
 def plugin(tmp_path, monkeypatch):
     """A tiny installed distribution: a package plus a dist-info with an ``smgs.methods`` entry point."""
-    pkg = tmp_path / "smgs_toy_plugin"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text(PLUGIN)
-    dist = tmp_path / "smgs_toy_plugin-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: smgs-toy-plugin\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text(f"[{ENTRY_POINT_GROUP}]\ntoy = smgs_toy_plugin:ConstantColour\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
+    install(tmp_path, monkeypatch, "smgs_toy_plugin", PLUGIN, ENTRY_POINT_GROUP, {"toy": "smgs_toy_plugin:ConstantColour"})
     yield "toy"
-    sys.modules.pop("smgs_toy_plugin", None)
+    uninstall("smgs_toy_plugin")
 
 
 def test_builtins_are_one_class_with_a_mode_switch():

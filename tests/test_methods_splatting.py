@@ -66,7 +66,7 @@ def test_stopthepop_trains_with_the_per_pixel_order(backend):
 def test_densification_grows_to_the_cap():
     scene = pattern_scene("rect4", 16)
     cfg = _config("softmax_gs", steps=30, cap=9)
-    cfg["densify"].update(refine_start=2, refine_every=5, grow_grad2d=1e-6)
+    cfg["densify"].update(refine_start=2, refine_every=5, grad_threshold=1e-6)
     m = create_method("softmax_gs", scene, cfg, device=CPU)
     counts = [m.train_step(s)["num_gaussians"] for s in range(30)]
     assert counts[0] == 4 and max(counts) == 9
@@ -75,7 +75,7 @@ def test_densification_grows_to_the_cap():
 def _resume_config():
     cfg = _config("softmax_gs", steps=12, cap=8)
     # exercise densification and an opacity reset inside the resumed stretch
-    cfg["densify"].update(refine_start=2, refine_every=3, grow_grad2d=1e-6, reset_every=7)
+    cfg["densify"].update(refine_start=2, refine_every=3, grad_threshold=1e-6, reset_every=7)
     return cfg
 
 

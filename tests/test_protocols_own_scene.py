@@ -46,7 +46,7 @@ def test_grid_keys_given_as_well_win(tmp_path):
 
 
 def test_a_dataset_kind_without_its_folder_says_to_add_dataset_path():
-    with pytest.raises(ValueError, match=r"needs the scene's folder: add dataset.path=/path/to/scene"):
+    with pytest.raises(SystemExit, match=r"needs the scene's folder: add dataset.path=/path/to/scene"):
         planned(["+experiment=budget5", "dataset=colmap"])
 
 

@@ -129,7 +129,7 @@ def test_a_sweep_with_a_failed_cell_exits_non_zero_saying_how_many(tmp_path):
     ("++budget.kind=7", ["budget.kind=7: expected a string"]),
     ("++budget.kind=huge", ["unknown kind 'huge'", "budget.kind", "5pct"]),
     ("++budget.preset=cap", ["BudgetConfig at budget", "unknown key(s) ['preset']"]),
-    ("+budget.densify_grad_threshold=high", ["budget.densify_grad_threshold", "number"]),
+    ("+budget.grad_threshold=high", ["budget.grad_threshold", "number"]),
     ("dataset.train.optim=nosuch", ["nosuch", "hyperparameter set", "3dgs2023"]),
     ("++method.train.k_max=lots", ["k_max", "'lots'", "int"]),
     ("backend=gpu9", ["backend", "gpu9", "reference"]),
@@ -152,21 +152,12 @@ def test_sigterm_ends_the_run_cleanly_and_the_log_holds_plain_lines(tmp_path):
     """stderr is a pipe here (as in a log file): whole lines, no carriage returns or cursor codes; a
     SIGTERM mid-training stops with a sentence and exit status 143, the checkpoint kept."""
     import signal
-    import subprocess
-    import sys
+
+    from sigterm_run import terminate_when_training
 
     args = tiny(tmp_path, "grid.methods=[3dgs]", "dataset.steps=20000", "checkpoint_every=10")
-    p = subprocess.Popen([sys.executable, "-m", "protocols.run", *args], cwd=Path(__file__).resolve().parent.parent,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines = []
-    for line in p.stderr:  # the first progress line: training has started
-        lines.append(line)
-        if "circle4/3dgs: step" in line:
-            break
-    p.send_signal(signal.SIGTERM)
-    out, err = p.communicate(timeout=120)
-    err = "".join(lines) + err
-    assert p.returncode == 128 + signal.SIGTERM, err[-2000:]
+    code, out, err = terminate_when_training(args, "circle4/3dgs: step")
+    assert code == 128 + signal.SIGTERM, err[-2000:]
     assert "stopped by SIGTERM" in err and "resume" in err
     assert "Traceback" not in err and "Fatal" not in err
     assert "\r" not in err + out and "\x1b" not in err + out

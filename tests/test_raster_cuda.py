@@ -191,6 +191,7 @@ def test_cuda_float32_close_to_reference_float64(mode):
     assert_same(oc, gc, o64, g64, OUT_ATOL64, GRAD_RTOL64)
 
 
+@pytest.mark.slow   # builds another variant (bench/gpu_check.py runs it after the renderer's tests)
 @pytest.mark.parametrize("mode", ["3dgs", "softmax_gs"])
 def test_cuda_t_min_variant_matches_reference(mode):
     """A transmittance threshold other than 1e-4 is compiled into a variant build."""

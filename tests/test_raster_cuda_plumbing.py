@@ -144,3 +144,21 @@ def test_wrapper_with_no_splats_renders_the_background_without_calling_the_kerne
         assert ins[k].grad is not None and ins[k].grad.shape == ins[k].shape, k
     assert rv.grad is not None and rv.grad.shape == (0, 2)
     assert torch.equal(bg.grad, torch.full((3,), 17.0 * 21))
+
+
+@pytest.mark.parametrize("which", ["default", "v2", "per-pixel"])
+def test_more_splats_than_the_binning_indexes_are_refused_before_the_kernels(which):
+    """prepare/emit index each splat's [4] box with 32-bit 4·i: past 2^29 splats it would overflow
+    on the GPU, so the wrappers refuse, naming the limit and the way out (meta tensors: no memory)."""
+    from smgs.raster import cuda_v2
+
+    n = cuda_backend.MAX_SPLATS + 1
+    m = lambda *s: torch.empty(*s, device="meta")  # noqa: E731
+    sp = Splats2D(m(n, 2), m(n, 3), m(n), m(n, 3), m(n), None, None, None)
+    ext = StandInExtension()
+    call = {"default": cuda_backend.composite, "v2": cuda_v2.composite, "per-pixel": cuda_v2.composite_pixel}[which]
+    with pytest.raises(ValueError, match=r"536,870,913 splats in one render: the CUDA kernels bin at most "
+                                         r"536,870,912 .*prune the model below that, or render with backend='cpu'"):
+        call(ext, sp, composite_settings(16, 16, "3dgs", 3))
+    assert ext.calls == []
+    cuda_backend.check_splat_count(cuda_backend.MAX_SPLATS)   # the largest that fits

@@ -103,6 +103,7 @@ def test_v2_float32_close_to_reference_float64(mode):
     assert_same(ov, gv, o64, g64, OUT_ATOL64, GRAD_RTOL64)
 
 
+@pytest.mark.slow   # builds another variant (bench/gpu_check.py runs it after the renderer's tests)
 @pytest.mark.parametrize("mode", ["3dgs", "softmax_gs"])
 def test_v2_t_min_variant(mode):
     sc = random_scene(300, 40, 30, seed=6)

@@ -7,10 +7,12 @@ the PTX say about them holds (tools/ptxas_report.py prints the full table, kept 
 * the v2 softmax backward reads and writes its head records as float4 (whole 32-byte records);
 * the v2 kernels use the hardware reciprocal, the default kernels never (the opt-in leaves the
   default build alone), and the reach arithmetic is explicitly unfused (mul.rn);
-* the projection's PTX has no FMA: built as the CPU projection is, the two give the same bits.
+* the projection's PTX has no FMA: built as the CPU projection is, the two give the same bits;
+* the per-pixel order's key (peak_depth) is unfused where cuda_pixel.cu contracts the rest.
 
-The torch bindings are checked by the host compiler against this torch's headers (slow: ~1 min
-each on two cores). Skipped, with the reason, where nvcc or a C++ compiler is missing. Nothing here
+The torch bindings are checked by the host compiler against this torch's headers (~30 s for both,
+side by side, on two cores: in the default run, as the v2 binding once went uncompilable for weeks
+when it was marked slow). Skipped, with the reason, where nvcc or a C++ compiler is missing. Nothing here
 runs CUDA code: tests/test_raster_cuda_v2.py and tests/test_raster_projection_cuda.py (marked gpu) do.
 """
 
@@ -133,7 +135,26 @@ def test_projection_ptx_has_no_fma(compiled):
         assert "div.rn.f32" in body, name
 
 
-@pytest.mark.slow
+def test_the_peak_depth_key_is_not_contracted_where_the_per_pixel_kernels_are(tmp_path):
+    """cuda_pixel.cu is built with FMA contraction (the v2 flags); the CPU window without. The key
+    that orders each pixel's splats (splat_math.h's peak_depth) is written unfused, so both order
+    alike to the bit: its PTX alone has no fma and every product and sum rounds on its own."""
+    nv = _nvcc_or_skip()
+    probe = tmp_path / "probe.cu"
+    probe.write_text('#include "splat_math.h"\n'
+                     'extern "C" __global__ void probe(const float* c, float* out) {\n'
+                     '  out[threadIdx.x] = smgs::peak_depth(c[9], c[10], c, c[11]);\n}\n')
+    flags = dict(ptxas_report.sources())["cuda_pixel.cu"]
+    assert "--fmad=true" in flags
+    done = subprocess.run([nv, "-ptx", "-arch=sm_90", *flags, f"-I{CSRC}", str(probe), "-o", str(tmp_path / "p.ptx")],
+                          capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-3000:]
+    ptx = (tmp_path / "p.ptx").read_text()
+    assert "fma.rn.f32" not in ptx
+    assert ptx.count("mul.rn.f32") == 14 and ptx.count("add.rn.f32") == 9, ptx   # as written, no fewer
+    assert "div.rn.f32" in ptx
+
+
 def test_bindings_compile_against_this_torch():
     _nvcc_or_skip()
     cxx = shutil.which(os.environ.get("CXX", "c++"))

@@ -11,49 +11,12 @@ from __future__ import annotations
 
 import pytest
 import torch
-from cuda_v2_standin import StandInCompositing, StandInProjection
-from device_mix import CPU, OTHER, Remote, simulated_gpu
+from cuda_v2_standin import OnHost, StandInCompositing, StandInProjection
+from device_mix import CPU, OTHER, simulated_gpu
 
 from smgs.camera import Camera
 from smgs.raster import cuda_v2, projection_cuda, rasterize
 from smgs.raster.types import MODES, mode_flags
-
-
-class _OnHost:
-    """A stand-in binding for Remote tensors: computes on their host values with the dispatch mode
-    off, returns its outputs on the stand-in device, and counts the real binding's synchronisations."""
-
-    def __init__(self, base, mode, forward_sync: str | None = None, softmax_backward_sync: str | None = None):
-        self.base, self.mode = base, mode
-        self.forward_sync, self.softmax_backward_sync = forward_sync, softmax_backward_sync
-
-    def _on_host(self, fn, args):
-        from torch.utils._python_dispatch import _disable_current_modes
-
-        with _disable_current_modes():
-            out = fn(*[a.inner if type(a) is Remote else a for a in args])
-        return [Remote(t) for t in out]
-
-    def layout(self) -> list[int]:
-        return self.base.layout()
-
-    def forward(self, *args):
-        out = self._on_host(self.base.forward, args)
-        if self.forward_sync:
-            self.mode.sync(self.forward_sync)
-        return out
-
-    def backward(self, *args):
-        if self.softmax_backward_sync and any(a is True for a in args[-5:]) and _softmax(self.base, args):
-            self.mode.sync(self.softmax_backward_sync)
-        return self._on_host(self.base.backward, args)
-
-
-def _softmax(base, args) -> bool:
-    from cuda_v2_standin import params
-
-    names = [n for _, n in params(base.src, "backward_v2")]
-    return bool(dict(zip(names, args))["use_softmax"])
 
 
 def _splats(n: int, device, sh: bool) -> dict[str, torch.Tensor]:
@@ -87,8 +50,8 @@ def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_onc
     ref = _render(want, cam, mode, sh, backend="reference")
     (ref.rgb.mean() + ref.depth.mean()).backward()
     with simulated_gpu(monkeypatch) as m:
-        proj = _OnHost(StandInProjection(), m)
-        comp = _OnHost(StandInCompositing(), m, "binding forward: the pair count",
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count",
                        "binding backward: the most crowded pixel's count")
         monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
         monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
@@ -114,3 +77,57 @@ def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_onc
     assert sum("the pair count" in w for w in where_fwd) == 1, where_fwd
     assert n_fwd < n_default, (n_fwd, n_default, where_fwd)
     assert n_bwd == (1 if mode_flags(mode)[1] else 0), where_bwd
+
+
+BAD_INPUTS = [("means3d", (5, 1), float("nan"), r"means3d has 1 NaN or inf"),
+              ("scales", (6, 0), -0.1, r"scales has 1 negative value"),
+              ("opacities", (7,), float("inf"), r"opacities has 1 NaN or inf"),
+              ("gamma", (8,), -float("inf"), r"gamma has 1 NaN or -inf"),
+              ("colors", (9, 2, 1), float("nan"), r"colors_or_sh has 1 NaN or inf")]
+
+
+@pytest.mark.parametrize("name, at, value, message", BAD_INPUTS)
+def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_nothing_of_a_bad_one(
+        monkeypatch, name, at, value, message):
+    """v2 + lean glue: the fused projection checks every per-Gaussian input itself (a device flag,
+    no launch of its own); a bad Gaussian is culled there, so the compositing renders nothing of it
+    (a NaN splat's box is the whole image), and the flag, copied before the compositing's one wait,
+    is read after it: the same error as the verified glue's, naming the input."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
+    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+    with simulated_gpu(monkeypatch) as m:
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        s = _splats(60, OTHER, sh=True)
+        with torch.no_grad():
+            s[name][at] = value
+        m.reset()
+        with pytest.raises(ValueError, match=message):
+            _render(s, cam, "softmax_gs", True, cuda_kernels="v2")
+        assert m.counts["binding forward: the pair count"] == 1     # rendered, then refused
+        # the flag went to the host without a wait and rode on the pair count's; only the naming
+        # after it (checks.finite's exact count, the error path) reads the device again
+        assert m.counts["copy to host, non_blocking"] == 1
+        assert not [w for w in m.where if "smgs/raster" in w and "checks.py" not in w], m.where
+        v = comp.base.saved["v"]
+        row = at[0]
+        assert (v["radii"][row] == 0).all()                          # culled in the projection
+        assert all(torch.isfinite(t).all() for t in (comp.base.outs["rgb"], comp.base.outs["alpha"]))
+
+
+def test_the_lean_glue_renders_an_infinite_gamma_without_complaint(monkeypatch):
+    """γ = +inf is valid (a hard depth decay): the kernel's check lets it through."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
+    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+    with simulated_gpu(monkeypatch) as m:
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        s = _splats(60, OTHER, sh=False)
+        with torch.no_grad():
+            s["gamma"][:5] = float("inf")
+        out = _render(s, cam, "softmax_gs", False, cuda_kernels="v2")
+        assert (comp.base.saved["v"]["radii"][5:10] != 0).any() and torch.isfinite(out.rgb.cpu()).all()

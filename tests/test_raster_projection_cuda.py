@@ -44,7 +44,8 @@ def test_cuda_projection_equals_the_cpu_projection_bit_for_bit(idx):
     floats = projection_cuda.camera_floats(cam)
     dev = [t.cuda() for t in (means, quats, scales)]
     empty = torch.empty(0, device="cuda")
-    gm2, gcon, gdep, grad, gcol = ext.forward(*dev, empty, floats, K.NEAR_PLANE, eps, K.SIGMA_EXTENT, -1, True)
+    gm2, gcon, gdep, grad, gcol, _ = ext.forward(*dev, empty, floats, K.NEAR_PLANE, eps, K.SIGMA_EXTENT, -1, True,
+                                                 False, [], [], empty)
     n = means.shape[0]
     kept = torch.zeros(n, dtype=torch.bool)
     kept[ids] = True
@@ -78,7 +79,8 @@ def test_cuda_sh_colours_equal_the_cpu_stage_bit_for_bit(degree):
     floats = projection_cuda.camera_floats(cam)
     center = floats[22:]
     dev = [t.cuda() for t in (means, quats, scales, sh)]
-    m2, con, dep, rad, col = ext.forward(*dev, floats, K.NEAR_PLANE, 0.3, K.SIGMA_EXTENT, degree, True)
+    m2, con, dep, rad, col, _ = ext.forward(*dev, floats, K.NEAR_PLANE, 0.3, K.SIGMA_EXTENT, degree, True, False, [],
+                                            [], dev[0].new_empty(0))
     kept = (rad.cpu() != 0).any(1)
     want = cpu.sh_forward(means, sh, center, degree, True)
     _bits_equal(col.cpu()[kept], want[kept], f"SH degree {degree} colours")
@@ -113,3 +115,38 @@ def test_cuda_projection_autograd_and_strided_gradients():
         assert not p.radii.requires_grad and p.colors is None
     for a, b in zip(*outs):
         assert torch.equal(a, b)
+
+
+def test_the_forward_kernel_checks_the_renderers_inputs_where_asked():
+    """The lean glue's input checks inside the projection (projection_cuda.h ProjChecks): a Gaussian
+    with a non-finite input among its own, its checked rows (+inf allowed in gamma's) or a negative
+    scale is culled (zeros, radii (0, 0)) and raises the flag; so does a bad background; the other
+    rows are the unchecked kernel's to the bit."""
+    means, quats, scales = _edge_scene(2000, 0)
+    cam = Camera.look_at([0.3, -0.2, -3.0], [0.0, 0.0, 0.0], [0, -1, 0], fx=60.0, fy=55.0, width=64, height=48)
+    ext, floats = projection_cuda.extension(), projection_cuda.camera_floats(cam)
+    dev = [t.cuda() for t in (means, quats, scales)]
+    empty = torch.empty(0, device="cuda")
+    opac, gamma = torch.full((2000,), 0.5, device="cuda"), torch.ones(2000, device="cuda")
+    gamma[3] = float("inf")   # allowed
+    bg = torch.tensor([0.1, 0.2, 0.3], device="cuda")
+    args = (K.NEAR_PLANE, 0.3, K.SIGMA_EXTENT, -1, True)
+    plain = ext.forward(*dev, empty, floats, *args, False, [], [], empty)
+    good = ext.forward(*dev, empty, floats, *args, True, [opac, gamma], [0, 1], bg)
+    assert int(good[5].item()) == 0
+    for a, b, what in zip(plain[:4], good[:4], ("means2d", "conics", "depths", "radii")):
+        _bits_equal(a, b, what)
+    live = (plain[3].cpu() != 0).any(1).nonzero()[:, 0]
+    rows = live[:4].tolist()
+    dev[0][rows[0], 1] = float("nan")
+    dev[2][rows[1], 0] = -0.1
+    opac[rows[2]] = float("inf")
+    gamma[rows[3]] = -float("inf")
+    out = ext.forward(*dev, empty, floats, *args, True, [opac, gamma], [0, 1], bg)
+    assert int(out[5].item()) != 0
+    assert (out[3].cpu()[rows] == 0).all() and torch.isfinite(out[0]).all() and torch.isfinite(out[1]).all()
+    dev[0][rows[0], 1], dev[2][rows[1], 0], opac[rows[2]], gamma[rows[3]] = 0.0, 0.1, 0.5, 1.0
+    bg[1] = float("nan")
+    assert int(ext.forward(*dev, empty, floats, *args, True, [opac, gamma], [0, 1], bg)[5].item()) != 0
+    empty3 = [t[:0].contiguous() for t in dev]   # no Gaussians: the background is checked all the same
+    assert int(ext.forward(*empty3, empty, floats, *args, True, [], [], bg)[5].item()) != 0

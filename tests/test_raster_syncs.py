@@ -24,6 +24,7 @@ import torch
 from cuda_standin import BINDING, CSRC
 from device_mix import OTHER, simulated_gpu
 
+import smgs.raster.cuda as cuda_backend
 from smgs import Camera
 from smgs.raster import rasterize
 from smgs.raster.device_glue import GLUE_ENV
@@ -145,6 +146,11 @@ def test_the_lean_glue_names_a_bad_input_after_the_render(monkeypatch):
         with pytest.raises(NonFiniteInputError, match=r"means3d has 1 NaN or inf"):
             rasterize(s["means3d"], s["quats"], s["scales"], s["opacities"], s["sh"][:, 0], cam, mode="3dgs")
         assert m.counts["binding forward: the pair count"] == 1     # rendered, then refused
+        # ... but nothing of it rendered: the opacities reached the binding as NaN (every backend skips
+        # such a splat), not the NaN splat's whole-image box
+        ext = cuda_backend.extension().base     # the stand-in keeps what it was given and what it made
+        assert torch.isnan(ext.given["opacities"]).all()
+        assert torch.isfinite(ext.saved["rgb"]).all() and not ext.saved["alpha"].any()
         with torch.no_grad():
             s["means3d"][7, 1] = 0.0
         with pytest.raises(ValueError, match=r"scales has 1 negative value"):

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 import reports.build
-from protocols.report_step import DEFAULT_BUILDER, ReportFailed, build_report, builder
+from protocols.report_step import ReportFailed, build_report, builder
 
 CALLS: list[Path] = []
 
@@ -16,9 +16,17 @@ def record(runs_dir: Path) -> Path:
     return runs_dir / "report" / "report.md"
 
 
-def test_the_default_builder_is_the_report_builder():
-    assert builder(None) is reports.build.build_report
-    assert builder(DEFAULT_BUILDER) is reports.build.build_report
+def test_the_configured_builder_is_the_report_builder_and_the_config_its_one_home():
+    """configs/config.yaml names the builder; protocols/ names no report code (tools/import_graph.py
+    sees a "module:function" string as an import), so unset is an error saying where it is set."""
+    from hydra import compose, initialize_config_dir
+
+    from protocols.run import CONFIG_DIR
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        assert builder(compose(config_name="config").report_builder) is reports.build.build_report
+    with pytest.raises(ValueError, match="report_builder is not set.*configs/config.yaml.*report=false"):
+        builder(None)
 
 
 def test_the_named_builder_is_called_in_this_process(tmp_path):

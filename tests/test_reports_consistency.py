@@ -1,9 +1,15 @@
 """The report does not contradict itself: rows "not run" named with their budget, the backend row
 filled from the stability battery that ran, left_out holding only what was left out."""
 
+import html
+import re
+
+import reports.build
 from protocols.train_loop import left_out_of
+from reports.build import build_report
 from reports.environment import environment_markdown
 from reports.tables import not_run_note
+from reports_tree import make_tree
 
 
 def test_paper_rows_not_run_name_their_budget():
@@ -20,6 +26,17 @@ def test_environment_names_the_backends_the_stability_battery_rendered_with():
     md = environment_markdown([], machine, probed_backends=["cpu", "reference"])
     assert "not probed" not in md and "cpu, reference (rendered by this report's stability battery)" in md
     assert "not probed" in environment_markdown([], machine)
+
+
+def test_report_html_and_md_name_the_same_backends(tmp_path, monkeypatch):
+    rows = [{"case": "c", "mode": "3dgs", "backend": b, "dtype": "float32", "max_abs_err": 0.0,
+             "max_grad_rel_err": 0.0, "nonfinite_outputs": 0, "nonfinite_grads": 0} for b in ("cpu", "reference")]
+    monkeypatch.setattr(reports.build, "compute_stability", lambda: (rows, None))   # the battery, as it ran
+    md = build_report(make_tree(tmp_path / "runs"))
+    in_md = re.search(r"^\| backend \| [^|]* \| ([^|]*) \|$", md.read_text(), re.M)[1]
+    in_html = re.search(r'<th scope="row">backend</th><td class="txt">[^<]*</td><td class="txt">([^<]*)</td>',
+                        (md.parent / "report.html").read_text())[1]
+    assert in_md.startswith("cpu, reference") and html.unescape(in_html) == in_md
 
 
 def test_left_out_holds_only_what_was_left_out():

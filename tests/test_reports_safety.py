@@ -94,7 +94,7 @@ def test_a_failed_build_leaves_the_previous_report_whole(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="No space left on device"):
         build_report(root, stability="not here")
     assert _files(out) == before
-    assert sorted(p.name for p in root.iterdir()) == ["bad", "more", "ok", "report"]
+    assert sorted(p.name for p in root.iterdir()) == [".report.lock", "bad", "more", "ok", "report"]   # the lock of one_build
     monkeypatch.undo()
     build_report(root, stability="not here")   # and a build that succeeds replaces it, keeping notes.md
     assert (out / "notes.md").read_text() == "mine" and "flower" in (out / "report.md").read_text()

@@ -39,7 +39,7 @@ def test_the_resolved_settings_are_the_trainers_own():
 
     s = resolved_settings("softmax_gs", method_settings(cell), run_settings(cell))
     assert s["mode"] == "softmax_gs" and s["steps"] == 3000
-    assert s["gaussians"]["beta"]["init"] == 1.0 and s["densify"]["grow_grad2d"] == 0.004
+    assert s["gaussians"]["beta"]["init"] == 1.0 and s["densify"]["grad_threshold"] == 0.004
 
 
 def test_a_method_that_cannot_be_resolved_still_gets_a_hash():

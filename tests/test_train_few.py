@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from smgs.data.datasets import load_scene
+from smgs.data import load_scene
 from smgs.train import TrainConfig, from_dict
 from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer
@@ -22,14 +22,14 @@ MODES_SORTS = [("3dgs", "global"), ("gef_only", "global"), ("softmax_only", "glo
 
 @pytest.fixture(scope="module")
 def scene():
-    return load_scene("procedural", n_views=4, size=(32, 24))
+    return load_scene("procedural", n_views=4, width=32, height=24)
 
 
 def _densify(strategy: str, **over) -> dict:
     if strategy == "mcmc":   # relocation and growth every 2 steps (at least one more each), up to 8
         return {"budget_kind": "mcmc", "cap": 8, "refine_start": 1, "refine_every": 2, **over}
     # every Gaussian a candidate (threshold ~0): clones and splits every 2 steps, reset every 5
-    return {"budget_kind": "full", "refine_start": 1, "refine_every": 2, "reset_every": 5, "grow_grad2d": 1e-12, **over}
+    return {"budget_kind": "full", "refine_start": 1, "refine_every": 2, "reset_every": 5, "grad_threshold": 1e-12, **over}
 
 
 def _trainer(scene, mode: str, sort: str, n: int, densify: dict) -> Trainer:
@@ -64,7 +64,7 @@ def test_zero_one_and_few_gaussians_train(scene, mode, sort, strategy, n):
 def test_a_model_pruned_to_nothing_goes_on_training(scene, mode, sort):
     """Every Gaussian under the pruning opacity (0.5 > the initial 0.1): the first refinement
     removes them all, says so (pruned as transparent), and the steps after it run on none."""
-    tr = _trainer(scene, mode, sort, 5, _densify("default", prune_opacity=0.5, grow_grad2d=1.0))
+    tr = _trainer(scene, mode, sort, 5, _densify("default", prune_opacity=0.5, grad_threshold=1.0))
     logs = [tr.train_step(s) for s in range(STEPS)]
     assert logs[1]["pruned"] == logs[1]["pruned_transparent"] == 5 and logs[1]["pruned_big"] == 0
     assert len(tr.gaussians) == 0 and all(math.isfinite(x["loss"]) for x in logs)

@@ -105,7 +105,7 @@ def test_hparam_sets_are_named_and_distinct():
 
 
 def test_budget_presets():
-    assert {k: v.get("grow_grad2d") for k, v in BUDGETS.items()} == \
+    assert {k: v.get("grad_threshold") for k, v in BUDGETS.items()} == \
         {"full": 2e-4, "light": 3e-4, "mini": 5e-4, "5pct": 4e-3, "cap": 2e-4, "mcmc": None}
     assert BUDGETS["mcmc"]["strategy"] == "mcmc" and densify_config("full").strategy == "default"
     assert densify_config("cap", cap=16).cap == 16
@@ -121,7 +121,7 @@ def test_config_from_dict_roundtrip_and_errors():
     assert again == cfg
     c = from_dict(TrainConfig, {"mode": "3dgs", "optim": "3dgs2023+softmaxgs_patterns",
                                 "densify": {"budget_kind": "mini"}, "gaussians": {"beta": {"init": 5}}})
-    assert c.optim.beta_lr == 3e-4 and c.densify.grow_grad2d == 5e-4
+    assert c.optim.beta_lr == 3e-4 and c.densify.grad_threshold == 5e-4
     assert c.gaussians.beta.init == 5.0 and isinstance(c.gaussians.beta.init, float)
     with pytest.raises(ValueError, match="unknown key"):
         from_dict(TrainConfig, {"loss": {"lamda_dssim": 0.1}})

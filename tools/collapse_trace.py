@@ -33,7 +33,7 @@ import torch  # noqa: E402
 def build(args: argparse.Namespace):
     from baselines.method import RunSettings
     from baselines.trainer_settings import train_config
-    from smgs.data.datasets import load_scene
+    from smgs.data import load_scene
     from smgs.train import TrainConfig, from_dict
     from smgs.train.config import budget_threshold
     from smgs.train.trainer import Trainer
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"# {args.mode} {args.budget} steps {args.steps} (schedule of {args.schedule_steps}), "
           f"{scene.train[0].camera.width}x{scene.train[0].camera.height}, {len(scene.train)} train views; "
           f"refine {d.refine_start}-{d.refine_stop} every {d.refine_every}, reset every {d.reset_every}, "
-          f"grad {d.grow_grad2d:g}; init {len(tr.gaussians)}", flush=True)
+          f"grad {d.grad_threshold:g}; init {len(tr.gaussians)}", flush=True)
     print("| step | #GS | cloned | split | pruned transparent | pruned big | of which > px on screen | "
           "of which only > world size | under 0.005 | L1 | s |")
     print("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|")

@@ -54,11 +54,11 @@ class GradStats:
 def _trainer(mc: dict, size: tuple[int, int], beta_init: float | None, gamma_init: float | None) -> tuple:
     """The procedural scene and a Trainer for the TrainConfig dict ``mc`` (mode and seed set), with
     the softmax modes' initial β and γ (per splat size) where given (None: the defaults)."""
-    from smgs.data.datasets import load_scene
+    from smgs.data import load_scene
     from smgs.train import TrainConfig, from_dict
     from smgs.train.trainer import Trainer
 
-    scene = load_scene("procedural", n_views=24, size=size, test_every=8)
+    scene = load_scene("procedural", n_views=24, width=size[0], height=size[1], test_every=8)
     mc["gaussians"] = {k: {"init": v} for k, v in (("beta", beta_init), ("gamma", gamma_init)) if v is not None}
     torch.manual_seed(mc["seed"])
     return scene, Trainer(scene, from_dict(TrainConfig, mc), device="cpu")
@@ -114,7 +114,7 @@ def refinement_trace(mode: str, steps: int, size: tuple[int, int], seed: int = 0
     from baselines.trainer_settings import scale_schedule
 
     mc = {"mode": mode, "seed": seed, "steps": schedule[0],
-          "densify": {"budget_kind": "full", "grow_grad2d": threshold}}
+          "densify": {"budget_kind": "full", "grad_threshold": threshold}}
     scale_schedule(mc, schedule[0], schedule[1])
     _, tr = _trainer(mc, size, None, gamma_init)
     st, refine = tr.strategy, tr.strategy.densify_and_prune

@@ -5,12 +5,16 @@
 Prints the package-level edges (importer -> imported, with the count of module imports behind each),
 then every edge that runs against smgs <- baselines <- protocols <- reports <- smgs_cli, or inside
 smgs against SMGS_LAYERS, and every cycle among modules; exits 1 if there is any. Every import
-counts, also one inside a function: a lazy import is still a dependency.
+counts, also one inside a function: a lazy import is still a dependency. So does an import by name:
+a literal module passed to ``importlib.import_module`` (or ``__import__``), and a ``"module:attr"``
+string naming a module of the harness (the form every registry of things imported lazily uses:
+methods, renderer backends, scene formats), wherever it is written.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from collections import Counter
 from pathlib import Path
@@ -18,12 +22,13 @@ from pathlib import Path
 LAYERS = ("smgs", "baselines", "protocols", "reports", "smgs_cli")  # each may import only those before it
 
 # Inside smgs, each group may import its own and those before it: plain helpers that import no other
-# smgs module (version, env, atomic writes, the device setting, the camera), then the renderer, the
+# smgs module (version, env, atomic writes, the device setting, the camera, a setting's ranges, what
+# the plug-in registries share), then the renderer, the
 # scenes, the metrics, training, model files (the PLY and its mapping onto the trainer), and the
 # package's front (smgs/__init__.py, the demo). A dotted name covers its package and submodules;
 # "smgs" is the package's own __init__ only. A module in no group is reported, to be placed.
 SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
-    ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera"),
+    ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera", "smgs.ranges", "smgs.plugins"),
     ("smgs.raster",),
     ("smgs.data",),
     ("smgs.metrics",),
@@ -32,6 +37,8 @@ SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
     ("smgs.demo", "smgs"),
 )
 UNPLACED = "(no group of SMGS_LAYERS)"
+BY_NAME = re.compile(r"([A-Za-z_][\w.]*):[A-Za-z_][\w.]*")   # "module:attr", as the registries write them
+IMPORT_FUNCTIONS = ("import_module", "__import__")
 
 
 def modules(root: Path) -> dict[str, Path]:
@@ -54,6 +61,8 @@ def imports(name: str, path: Path, known: dict[str, Path]) -> set[str]:
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
+        elif isinstance(node, (ast.Call, ast.Constant)):
+            targets = by_name(node, known)
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
@@ -69,6 +78,19 @@ def imports(name: str, path: Path, known: dict[str, Path]) -> set[str]:
             if t and t != name:
                 out.add(t)
     return out
+
+
+def by_name(node: ast.Call | ast.Constant, known: dict[str, Path]) -> list[str]:
+    """The module a call of ``importlib.import_module`` / ``__import__`` with a literal name imports,
+    or that a ``"module:attr"`` string names when it is one of ``known``."""
+    if isinstance(node, ast.Call):
+        func = node.func
+        called = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", None)
+        first = node.args[0] if node.args else None
+        is_literal = isinstance(first, ast.Constant) and isinstance(first.value, str)
+        return [first.value] if called in IMPORT_FUNCTIONS and is_literal else []
+    match = BY_NAME.fullmatch(node.value) if isinstance(node.value, str) else None
+    return [match.group(1)] if match and match.group(1) in known else []
 
 
 def cycles(graph: dict[str, set[str]]) -> list[list[str]]:

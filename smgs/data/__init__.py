@@ -1,12 +1,16 @@
-"""Scenes and their loaders.
+"""Scenes, their formats and their loaders.
 
-``load_scene`` is the one entry point for the protocol runner; the loaders are importable on their
-own (``smgs.data.colmap.load_colmap``, ``smgs.data.transforms.load_transforms``,
-``smgs.data.procedural.make_procedural_scene``). Heavy imports (pycolmap, OpenCV) happen on use.
+Scene formats and benchmark datasets register by name (``smgs.data.registry``; plugins through the
+entry-point group ``smgs.datasets``, docs/adding-a-scene-format.md); ``load_scene`` makes a scene
+from plain values. The loaders are importable on their own (``smgs.data.colmap.load_colmap``,
+``smgs.data.transforms.load_transforms``, ``smgs.data.procedural.make_procedural_scene``). Heavy
+imports (pycolmap, OpenCV) happen on use.
 """
 
-from smgs.data.datasets import (DATA_ROOT_ENV, DATASETS, GENERIC_RULES, DatasetSpec, get_dataset,
-                                load_dataset_scene, load_scene, resolve_data_root)
+from smgs.data.datasets import DATA_ROOT_ENV, DatasetSpec, resolve_data_root
+from smgs.data.formats import SceneFormat, SceneRequest
+from smgs.data.registry import check_scene, get_dataset, load_scene
+from smgs.data.rules import GENERIC_RULES
 from smgs.data.images import ResolutionRule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
                              camera_extent, split_every)
@@ -26,7 +30,7 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'smgs.data' has no attribute {name!r}")
 
 
-__all__ = ["Scene", "View", "camera_extent", "split_every", "ResolutionRule",
-           "DatasetSpec", "DATASETS", "GENERIC_RULES", "DATA_ROOT_ENV", "get_dataset", "resolve_data_root",
-           "load_dataset_scene", "load_scene", "load_colmap", "load_transforms", "make_procedural_scene",
+__all__ = ["Scene", "View", "camera_extent", "split_every", "ResolutionRule", "SceneFormat", "SceneRequest",
+           "DatasetSpec", "GENERIC_RULES", "DATA_ROOT_ENV", "get_dataset", "resolve_data_root",
+           "load_scene", "check_scene", "load_colmap", "load_transforms", "make_procedural_scene",
            "DatasetNotFoundError", "SceneFormatError", "MissingImageError"]

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.data.images import (ResolutionRule, check_aspect, check_scene_scale, describe_resampling, find_image,
-                              image_size, parallel_map, read_image, resize_image, resolve_auto_folder,
-                              scale_intrinsics)
+from smgs.data.images import (ResolutionRule, check_aspect, check_min_size, check_pinhole, check_scene_scale,
+                              describe_resampling, find_image, image_size, parallel_map, read_image, resize_image,
+                              resolve_auto_folder, scale_intrinsics)
 from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
                              camera_extent, check_split, split_description, split_every)
@@ -56,6 +56,7 @@ class ColmapModel:
     points: np.ndarray | None         # [M, 3] float64
     colors: np.ndarray | None         # [M, 3] uint8
     n_unregistered: int
+    quaternion_note: str | None = None   # how many rotations were normalised (QUAT_TOLERANCE)
 
 
 def find_model_dir(scene_dir: Path) -> Path:
@@ -108,9 +109,100 @@ def _check_binary_sizes(model_dir: Path, rec) -> None:
                 f"{n} bytes (truncated or padded). Re-export the model (colmap model_converter) or restore the file.")
 
 
+def import_pycolmap():
+    """pycolmap, imported with this process's SIGTERM handling kept: importing it installs glog's
+    failure-signal handler, which answers SIGTERM with a native stack dump and a kill instead of the
+    handler the process had (the runner's clean stop: its log's "interrupted" line, the cell's last
+    checkpoint kept). The handler the process had is put back after the import."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    before = signal.getsignal(signal.SIGTERM) if main else None
+    import pycolmap
+
+    if before is not None:   # None: installed outside Python, nothing of ours to keep
+        signal.signal(signal.SIGTERM, before)
+    return pycolmap
+
+
+def model_file(model_dir: Path, name: str) -> Path:
+    """The file of a model's ``cameras`` / ``images`` / ``points3D`` that pycolmap reads (.bin first)."""
+    b = Path(model_dir) / f"{name}.bin"
+    return b if b.is_file() else Path(model_dir) / f"{name}.txt"
+
+
+QUAT_TOLERANCE = 0.01
+"""A rotation quaternion whose length is within this of 1 is normalised (and the scene's meta says how
+many were); one further off, of length 0 or not finite, is refused. COLMAP writes unit quaternions,
+so a length off by more than 1 % is an edited or corrupt file, whose rotation cannot be trusted."""
+
+
+def _cameras(model_dir: Path, rec) -> dict[int, tuple[str, np.ndarray, int, int]]:
+    """camera id -> (model, K, width, height); a distorted model or unusable intrinsics are refused."""
+    cams = {}
+    for cid, cam in rec.cameras.items():
+        model = cam.model.name
+        if model not in SUPPORTED_MODELS:
+            raise SceneFormatError(
+                f"COLMAP camera {cid} in {model_dir} uses the {model} model; smgs (like 3DGS) needs "
+                f"undistorted {' or '.join(SUPPORTED_MODELS)} cameras. Undistort the scene first: "
+                f"colmap image_undistorter --image_path <scene>/images --input_path {model_dir} "
+                "--output_path <new scene> --output_type COLMAP")
+        K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
+        check_pinhole(f"{model_file(model_dir, 'cameras')}, camera {cid}", K, (int(cam.width), int(cam.height)))
+        cams[cid] = (model, K, int(cam.width), int(cam.height))
+    return cams
+
+
+def _viewmat(img, where: Path) -> tuple[np.ndarray, float]:
+    """An image's [4, 4] world-to-camera matrix and how far its quaternion's length was from 1
+    (normalised when within ``QUAT_TOLERANCE``); a pose that is no rotation and translation is
+    refused naming the image and the file."""
+    pose = img.cam_from_world()
+    q = np.asarray(pose.rotation.quat, dtype=np.float64)   # x, y, z, w
+    t = np.asarray(pose.translation, dtype=np.float64)
+    what = f"{where}, image {img.name!r} (id {img.image_id})"
+    fix = "Re-export the model from COLMAP or remove the image (colmap image_deleter)"
+    shown = ", ".join(f"{v:g}" for v in (q[3], q[0], q[1], q[2]))
+    if not np.isfinite(q).all() or not np.isfinite(t).all():
+        raise SceneFormatError(f"{what}: its pose is not finite (quaternion qw, qx, qy, qz = {shown}; translation "
+                               f"{', '.join(f'{v:g}' for v in t)}). {fix}")
+    n = float(np.linalg.norm(q))
+    if abs(n - 1) > QUAT_TOLERANCE:
+        raise SceneFormatError(f"{what}: its rotation quaternion (qw, qx, qy, qz = {shown}) has length {n:g}, not 1 "
+                               f"(more than {QUAT_TOLERANCE:g} off: an edited or corrupt value, no rotation). {fix}")
+    vm = np.eye(4)
+    if abs(n - 1) > 1e-6:
+        import pycolmap
+
+        vm[:3, :3] = np.asarray(pycolmap.Rotation3d(q / n).matrix(), dtype=np.float64)
+        vm[:3, 3] = t
+    else:
+        vm[:3, :] = np.asarray(pose.matrix(), dtype=np.float64)
+    return vm, abs(n - 1)
+
+
+def _check_unique_names(where: Path, images) -> None:
+    """Each image name once: a name twice is one file seen as two views, one of which may be held out
+    as a test view while its copy trains."""
+    ids: dict[str, list[int]] = {}
+    for img in images:
+        ids.setdefault(img.name, []).append(int(img.image_id))
+    twice = {name: sorted(i) for name, i in ids.items() if len(i) > 1}
+    if twice:
+        listed = "; ".join(f"{name} (image ids {', '.join(map(str, i))})" for name, i in sorted(twice.items())[:5])
+        raise SceneFormatError(
+            f"{where} lists {len(twice)} image name(s) more than once: {listed}"
+            f"{' and more' if len(twice) > 5 else ''}. One file would be both a training and a test view; "
+            "keep one image per name (colmap image_deleter) and export the model again")
+
+
 def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
-    """Read and check a COLMAP model with pycolmap. Every failure names the path."""
-    import pycolmap  # imported here: listing datasets should not need it
+    """Read and check a COLMAP model with pycolmap. Every failure names the path (and the camera or
+    image): intrinsics that cannot render (``check_pinhole``), poses that are not finite rotations,
+    an image name listed twice."""
+    pycolmap = import_pycolmap()  # imported here: listing datasets should not need it
 
     model_dir = Path(model_dir)
     if not model_dir.is_dir():
@@ -122,26 +214,15 @@ def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
         raise SceneFormatError(f"corrupt COLMAP model in {model_dir}: pycolmap could not read it ({e}). "
                                f"Expected {LAYOUT}") from e
     _check_binary_sizes(model_dir, rec)
-
-    cams = {}
-    for cid, cam in rec.cameras.items():
-        model = cam.model.name
-        if model not in SUPPORTED_MODELS:
-            raise SceneFormatError(
-                f"COLMAP camera {cid} in {model_dir} uses the {model} model; smgs (like 3DGS) needs "
-                f"undistorted {' or '.join(SUPPORTED_MODELS)} cameras. Undistort the scene first: "
-                f"colmap image_undistorter --image_path <scene>/images --input_path {model_dir} "
-                "--output_path <new scene> --output_type COLMAP")
-        cams[cid] = (model, np.asarray(cam.calibration_matrix(), dtype=np.float64), int(cam.width), int(cam.height))
-
-    images, n_unreg = [], 0
-    for img in rec.images.values():
-        if not img.has_pose:
-            n_unreg += 1
-            continue
+    cams = _cameras(model_dir, rec)
+    images_file = model_file(model_dir, "images")
+    registered = [img for img in rec.images.values() if img.has_pose]
+    _check_unique_names(images_file, registered)
+    images, off = [], []
+    for img in registered:
         model, K, w, h = cams[img.camera_id]
-        vm = np.eye(4)
-        vm[:3, :] = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
+        vm, dev = _viewmat(img, images_file)
+        off.append(dev)
         images.append(ColmapImage(img.name, int(img.camera_id), model, K, w, h, vm))
     if not images:
         raise SceneFormatError(f"COLMAP model {model_dir} has no registered images")
@@ -152,7 +233,62 @@ def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
         pts = list(rec.points3D.values())
         points = np.array([p.xyz for p in pts], dtype=np.float64)
         colors = np.array([p.color for p in pts], dtype=np.uint8)
-    return ColmapModel(model_dir, images, points, colors, n_unreg)
+    normalised = [d for d in off if d > 1e-6]
+    note = (f"{len(normalised)} rotation quaternion(s) of {images_file.name} normalised (length off 1 by up to "
+            f"{max(normalised):.2g})") if normalised else None
+    return ColmapModel(model_dir, images, points, colors, len(rec.images) - len(registered), note)
+
+
+@dataclass
+class ColmapSources:
+    """What a COLMAP scene is loaded from, each part found and checked (``colmap_sources``)."""
+
+    scene_dir: Path
+    model_dir: Path
+    model: ColmapModel
+    rule: ResolutionRule
+    folder_name: str
+    paths: list[Path]           # each model image's file, in model.images order
+
+
+def colmap_sources(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
+                   factor: float | None = None, max_width: int | None = None, resample: str | None = None,
+                   test_every: int | None = 8, model_dir: str | Path | None = None,
+                   with_points: bool = True) -> ColmapSources:
+    """Everything ``load_colmap`` checks before it decodes a pixel: the model (read and checked), the
+    image folder and every image's file, a split that leaves a view to train on, and images of at
+    least ``MIN_SIDE`` px under the rule (from the first image's header). The runner calls it for
+    each scene before any cell runs, so a folder that is no scene stops the sweep up front."""
+    if isinstance(rule, str):
+        rule = get_generic_rule(rule)
+    rule = rule.with_overrides(images=images, factor=factor, max_width=max_width, resample=resample)
+    scene_dir = Path(path)
+    mdir = Path(model_dir) if model_dir is not None else find_model_dir(scene_dir)
+    model = read_colmap_model(mdir, with_points=with_points)
+    tr, _ = split_every([im.name for im in model.images], test_every)
+    check_split(f"COLMAP model {mdir}", len(model.images), len(tr), split_description(test_every))
+
+    folder_name = rule.images
+    if folder_name == "auto":
+        folder_name = resolve_auto_folder(scene_dir, model.images[0].name, rule.max_width)
+    folder = scene_dir / folder_name
+    if not folder.is_dir():
+        raise DatasetNotFoundError(f"image folder {folder} does not exist (COLMAP model {mdir}); expected {LAYOUT}")
+    paths = []
+    for im in model.images:
+        p = find_image(folder, im.name)
+        if p is None:
+            raise MissingImageError(f"image {folder / im.name} (listed in COLMAP model {mdir}) is missing; "
+                                    f"every image of the model must be in {folder}")
+        paths.append(p)
+    src = image_size(paths[0])
+    check_min_size(paths[0], rule.target_size(*src), rule, src)
+    return ColmapSources(scene_dir, mdir, model, rule, folder_name, paths)
+
+
+ALPHA_NOTE = ("alpha is dropped: the ground truth is the files' RGB as stored, not composited, as 3DGS reads a "
+              "COLMAP scene (its 2023 code meant to multiply RGB by alpha, but its check tests the image height, "
+              "not the channel count; its 2024 code keeps RGB as stored and masks only the training render)")
 
 
 def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
@@ -168,46 +304,31 @@ def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRul
     test_every: every Nth image of the name-sorted list is test (index % N == 0); None: no test.
     Intrinsics are rescaled per axis to the size of the image actually loaded.
     """
-    if isinstance(rule, str):
-        rule = get_generic_rule(rule)
-    rule = rule.with_overrides(images=images, factor=factor, max_width=max_width, resample=resample)
-    scene_dir = Path(path)
-    mdir = Path(model_dir) if model_dir is not None else find_model_dir(scene_dir)
-    model = read_colmap_model(mdir, with_points=with_points)
-
-    folder_name = rule.images
-    if folder_name == "auto":
-        folder_name = resolve_auto_folder(scene_dir, model.images[0].name, rule.max_width)
-    folder = scene_dir / folder_name
-    if not folder.is_dir():
-        raise DatasetNotFoundError(f"image folder {folder} does not exist (COLMAP model {mdir}); expected {LAYOUT}")
-
-    paths = []
-    for im in model.images:
-        p = find_image(folder, im.name)
-        if p is None:
-            raise MissingImageError(f"image {folder / im.name} (listed in COLMAP model {mdir}) is missing; "
-                                    f"every image of the model must be in {folder}")
-        paths.append(p)
+    sources = colmap_sources(path, images, rule, factor=factor, max_width=max_width, resample=resample,
+                             test_every=test_every, model_dir=model_dir, with_points=with_points)
+    scene_dir, mdir, model, rule = sources.scene_dir, sources.model_dir, sources.model, sources.rule
+    folder_name, paths = sources.folder_name, sources.paths
 
     def load_one(i: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         im, p = model.images[i], paths[i]
-        img = read_image(p)
+        img = read_image(p, keep_alpha=True)
+        if img.shape[2] == 4:   # the stored RGB is the ground truth, as 3DGS reads it (ALPHA_NOTE)
+            with_alpha.append(p.name)
+            img = img[..., :3]
         src = (img.shape[1], img.shape[0])
         check_aspect(p, src, (im.width, im.height))
         out = rule.target_size(*src)
         img = resize_image(img, out, rule.resample)
         return img, scale_intrinsics(im.K, (im.width, im.height), out), src
 
+    with_alpha: list[str] = []
     loaded = parallel_map(load_one, range(len(model.images)), workers)
     check_scene_scale([(p, src, (im.width, im.height)) for p, (_, _, src), im in zip(paths, loaded, model.images)])
     views = []
     for im, (img, K, _) in zip(model.images, loaded):
         cam = Camera(torch.from_numpy(K).float(), torch.from_numpy(im.viewmat).float(), img.shape[1], img.shape[0])
         views.append(View(cam, torch.from_numpy(np.ascontiguousarray(img)), im.name))
-    names = [v.name for v in views]
-    tr, te = split_every(names, test_every)
-    check_split(f"COLMAP model {mdir}", len(views), len(tr), split_description(test_every))
+    tr, te = split_every([v.name for v in views], test_every)   # colmap_sources checked it leaves a view to train on
     train, test = [views[i] for i in tr], [views[i] for i in te]
 
     src0 = loaded[0][2]
@@ -236,7 +357,11 @@ def load_colmap(path: str | Path, images: str | None = None, rule: ResolutionRul
         "n_test": len(test),
         "n_unregistered_skipped": model.n_unregistered,
         "n_points": 0 if model.points is None else int(len(model.points)),
+        "alpha_dropped": (f"{len(with_alpha)} of {len(views)} images have an alpha channel (e.g. "
+                          f"{sorted(with_alpha)[0]}); {ALPHA_NOTE}") if with_alpha else None,
     }
+    if model.quaternion_note:
+        info["quaternions_normalised"] = model.quaternion_note
     info.update(meta or {})
     return Scene(
         name=info["scene"], train=train, test=test,

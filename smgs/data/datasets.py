@@ -1,4 +1,6 @@
-"""Dataset protocols as data, and ``load_scene``: the one entry point the protocol runner calls.
+"""The benchmark datasets as data: where their scenes lie under the data root, and their resolution
+rules (``DatasetSpec``). Each registers by name beside the scene formats (``smgs.data.registry``);
+its format (COLMAP for the paper's three) reads a scene's folder from it.
 
 Resolution rules (their sources, and why each result records which: docs/usage.md, "Resolution rules"):
 
@@ -18,11 +20,11 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 from smgs.data.images import ResolutionRule
 from smgs.data.rules import GENERIC_RULES
-from smgs.data.scene import DatasetNotFoundError, Scene
+from smgs.data.scene import DatasetNotFoundError
 
 DATA_ROOT_ENV = "SMGS_DATA_ROOT"
 
@@ -31,6 +33,7 @@ DATA_ROOT_ENV = "SMGS_DATA_ROOT"
 class DatasetSpec:
     """A benchmark dataset: where its scenes live under the data root and its resolution rules.
 
+    format: the scene format of its scenes (a name in ``smgs.data.registry``: colmap, transforms).
     folders: candidate folders under the data root, first match wins (3DGS's tandt_db archive
         unpacks to tandt/ and db/; the Mip-NeRF360 archive to 360_v2/ when not renamed).
     scenes: the paper's scenes (the default grid); extra_scenes load too but are not in the grid.
@@ -45,6 +48,7 @@ class DatasetSpec:
     groups: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     extra_scenes: tuple[str, ...] = ()
     layout: str = "<scene>/images/, <scene>/sparse/0/{cameras,images,points3D}.bin"
+    format: str = "colmap"
 
     def group_of(self, scene: str) -> str:
         for g, members in self.groups.items():
@@ -78,53 +82,47 @@ class DatasetSpec:
 MIPNERF360_OUTDOOR = ("bicycle", "garden", "stump", "flowers", "treehill")
 MIPNERF360_INDOOR = ("bonsai", "counter", "kitchen", "room")
 
-DATASETS: dict[str, DatasetSpec] = {
-    "mipnerf360": DatasetSpec(
-        name="mipnerf360",
-        folders=("mipnerf360", "360_v2"),
-        scenes=("bicycle", "bonsai", "counter", "garden", "kitchen", "room", "stump"),
-        extra_scenes=("flowers", "treehill"),
-        groups={"outdoor": MIPNERF360_OUTDOOR, "indoor": MIPNERF360_INDOOR},
-        layout="<scene>/{images,images_2,images_4,images_8}/, <scene>/sparse/0/",
-        rules={
-            "paper": {"*": ResolutionRule("paper", images="images", max_width=1600,
-                                          label="Softmax-GS paper: width 1600 from full-res images (PIL BICUBIC)")},
-            "3dgs": {"outdoor": ResolutionRule("3dgs", images="images_4", max_width=1600,
-                                               label="3DGS full_eval: JPEG images_4 (outdoor) as shipped"),
-                     "indoor": ResolutionRule("3dgs", images="images_2", max_width=1600,
-                                              label="3DGS full_eval: JPEG images_2 (indoor) as shipped")},
-            "gsplat": {"outdoor": ResolutionRule("gsplat", images="images", factor=4,
-                                                 label="gsplat: full-res downscaled 4x, PIL BICUBIC (no JPEG)"),
-                       "indoor": ResolutionRule("gsplat", images="images", factor=2,
-                                                label="gsplat: full-res downscaled 2x, PIL BICUBIC (no JPEG)")},
-            "cpu": {"*": GENERIC_RULES["cpu"]},
-        }),
-    "tandt": DatasetSpec(
-        name="tandt",
-        folders=("tandt", "tandt_db/tandt"),
-        scenes=("train", "truck"),
-        rules={
-            "paper": {"*": ResolutionRule("paper", max_width=1600,
-                                          label="Softmax-GS paper: width 1600 when wider (never upsampled)")},
-            "3dgs": {"*": ResolutionRule("3dgs", max_width=1600, label="3DGS full_eval: images, -r -1")},
-            "cpu": {"*": GENERIC_RULES["cpu"]},
-        }),
-    "deepblending": DatasetSpec(
-        name="deepblending",
-        folders=("db", "tandt_db/db"),
-        scenes=("drjohnson", "playroom"),
-        rules={
-            "paper": {"*": ResolutionRule("paper", label="Softmax-GS paper: native resolution")},
-            "3dgs": {"*": ResolutionRule("3dgs", max_width=1600, label="3DGS full_eval: images, -r -1")},
-            "cpu": {"*": GENERIC_RULES["cpu"]},
-        }),
-}
+MIPNERF360 = DatasetSpec(
+    name="mipnerf360",
+    folders=("mipnerf360", "360_v2"),
+    scenes=("bicycle", "bonsai", "counter", "garden", "kitchen", "room", "stump"),
+    extra_scenes=("flowers", "treehill"),
+    groups={"outdoor": MIPNERF360_OUTDOOR, "indoor": MIPNERF360_INDOOR},
+    layout="<scene>/{images,images_2,images_4,images_8}/, <scene>/sparse/0/",
+    rules={
+        "paper": {"*": ResolutionRule("paper", images="images", max_width=1600,
+                                      label="Softmax-GS paper: width 1600 from full-res images (PIL BICUBIC)")},
+        "3dgs": {"outdoor": ResolutionRule("3dgs", images="images_4", max_width=1600,
+                                           label="3DGS full_eval: JPEG images_4 (outdoor) as shipped"),
+                 "indoor": ResolutionRule("3dgs", images="images_2", max_width=1600,
+                                          label="3DGS full_eval: JPEG images_2 (indoor) as shipped")},
+        "gsplat": {"outdoor": ResolutionRule("gsplat", images="images", factor=4,
+                                             label="gsplat: full-res downscaled 4x, PIL BICUBIC (no JPEG)"),
+                   "indoor": ResolutionRule("gsplat", images="images", factor=2,
+                                            label="gsplat: full-res downscaled 2x, PIL BICUBIC (no JPEG)")},
+        "cpu": {"*": GENERIC_RULES["cpu"]},
+    })
 
+TANDT = DatasetSpec(
+    name="tandt",
+    folders=("tandt", "tandt_db/tandt"),
+    scenes=("train", "truck"),
+    rules={
+        "paper": {"*": ResolutionRule("paper", max_width=1600,
+                                      label="Softmax-GS paper: width 1600 when wider (never upsampled)")},
+        "3dgs": {"*": ResolutionRule("3dgs", max_width=1600, label="3DGS full_eval: images, -r -1")},
+        "cpu": {"*": GENERIC_RULES["cpu"]},
+    })
 
-def get_dataset(name: str) -> DatasetSpec:
-    if name not in DATASETS:
-        raise ValueError(f"unknown dataset {name!r}; expected one of {', '.join(DATASETS)}")
-    return DATASETS[name]
+DEEPBLENDING = DatasetSpec(
+    name="deepblending",
+    folders=("db", "tandt_db/db"),
+    scenes=("drjohnson", "playroom"),
+    rules={
+        "paper": {"*": ResolutionRule("paper", label="Softmax-GS paper: native resolution")},
+        "3dgs": {"*": ResolutionRule("3dgs", max_width=1600, label="3DGS full_eval: images, -r -1")},
+        "cpu": {"*": GENERIC_RULES["cpu"]},
+    })
 
 
 def resolve_data_root(data_root: str | Path | None = None) -> Path:
@@ -139,77 +137,3 @@ def resolve_data_root(data_root: str | Path | None = None) -> Path:
         raise DatasetNotFoundError(f"data root {root} does not exist; expected it to hold mipnerf360/<scene>, "
                                    "tandt/<scene> and db/<scene> (COLMAP layouts as distributed)")
     return root
-
-
-def load_dataset_scene(dataset: str, scene: str, data_root: str | Path | None = None, rule: str = "paper",
-                       test_every: int | None = 8, **overrides) -> Scene:
-    """A benchmark scene under a named resolution rule; ``overrides`` go to ``load_colmap``
-    (images, factor, max_width, resample, workers)."""
-    from smgs.data.colmap import load_colmap
-
-    spec = get_dataset(dataset)
-    root = resolve_data_root(data_root)
-    sdir = spec.scene_dir(root, scene)
-    res = spec.rule(rule, scene)
-    custom = {k: v for k, v in overrides.items() if k in ("images", "factor", "max_width", "resample") and v is not None}
-    return load_colmap(sdir, rule=res, test_every=test_every, name=scene,
-                       meta={"dataset": dataset, "scene": scene, "data_root": str(root),
-                             **({"rule_overrides": custom} if custom else {})},
-                       **overrides)
-
-
-SCENE_KINDS = ("colmap", "transforms", "procedural") + tuple(DATASETS)
-
-
-def load_scene(kind: str, *, path: str | Path | None = None, dataset: str | None = None,
-               scene: str | None = None, data_root: str | Path | None = None, rule: str | None = None,
-               images: str | None = None, factor: float | None = None, max_width: int | None = None,
-               resample: str | None = None, test_every: int | None = 8, undistort: bool = True,
-               n_views: int = 24, size: Sequence[int] = (128, 96), seed: int = 0,
-               trajectory_between: int | None = None, workers: int | None = None) -> Scene:
-    """Build a scene from plain config values.
-
-    kind: "procedural" (n_views, size, seed); "colmap" with ``path`` (a user's scene) or with
-        ``dataset`` + ``scene`` (a benchmark scene under ``data_root`` / $SMGS_DATA_ROOT);
-        "transforms" with ``path``; or a dataset name ("mipnerf360", "tandt", "deepblending")
-        with ``scene``.
-    rule: resolution rule name (datasets: "paper" default, "3dgs", "gsplat", "cpu"; a user's scene:
-        "3dgs" default, "native", "paper", "cpu"); images / factor / max_width / resample override it.
-    trajectory_between: if set, a video trajectory through the test cameras with that many frames
-        between consecutive ones (the paper's consistency protocol uses 128).
-    """
-    if kind not in SCENE_KINDS:
-        raise ValueError(f"unknown scene kind {kind!r}; expected one of {', '.join(SCENE_KINDS)}")
-    if kind in DATASETS:
-        dataset, kind = kind, "colmap"
-    if kind == "procedural":
-        from smgs.data.procedural import make_procedural_scene
-        s = make_procedural_scene(n_views=n_views, size=tuple(size), seed=seed, test_every=test_every)
-    elif kind == "colmap":
-        overrides = dict(images=images, factor=factor, max_width=max_width, resample=resample, workers=workers)
-        if dataset is not None:
-            if scene is None:
-                raise ValueError(f"dataset {dataset!r} needs a scene: one of {', '.join(get_dataset(dataset).scenes)}")
-            s = load_dataset_scene(dataset, scene, data_root, rule or "paper", test_every, **overrides)
-        else:
-            if path is None:
-                raise ValueError("kind='colmap' needs path=<scene folder> or dataset=<name> and scene=<name>")
-            from smgs.data.colmap import load_colmap
-            s = load_colmap(path, rule=rule or "3dgs", test_every=test_every, **overrides)
-    else:
-        if path is None:
-            raise ValueError("kind='transforms' needs path=<folder with transforms.json, or the file>")
-        from smgs.data.transforms import load_transforms
-        s = load_transforms(path, images=images, rule=rule or "3dgs", factor=factor, max_width=max_width,
-                            resample=resample, test_every=test_every, undistort=undistort, workers=workers)
-    if trajectory_between is not None:
-        # The consistency protocol's own interpolation (slerp, near-static frames dropped), so a
-        # scene's trajectory and the Table 4 scoring agree frame for frame.
-        from smgs.data.trajectory import interpolate_trajectory
-        keys = [v.camera for v in (s.test if len(s.test) >= 2 else s.train)]
-        traj = interpolate_trajectory(keys, trajectory_between)
-        s.trajectory = traj.cameras()
-        s.meta["trajectory"] = (f"{trajectory_between} frames between consecutive "
-                                f"{'test' if len(s.test) >= 2 else 'train'} cameras, {len(traj.dropped)} "
-                                f"near-static frames dropped: {len(s.trajectory)} frames")
-    return s

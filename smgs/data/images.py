@@ -7,6 +7,7 @@ every loader records which one it used (``describe_resampling``).
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import statistics
@@ -31,6 +32,16 @@ RESAMPLE: dict[str, Image.Resampling] = {
 }
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+
+MIN_SIDE = 16
+"""The smallest image side (px) a scene is trained and scored at: one tile of the renderer
+(``smgs.raster.constants.TILE_SIZE``), above SSIM's 11-px window (on smaller images its window is
+mostly zero padding). A 1x1 image scores 32 dB and SSIM 0.998 whatever the model."""
+
+PRINCIPAL_POINT_SLACK = 1.0
+"""How far (in image sizes) a principal point may lie outside its image: a crop can move it out of
+the frame, but one image size beyond the edge is a unit or entry error (normalised, swapped or
+scaled values), which renders every view off its rays."""
 
 
 @dataclass(frozen=True)
@@ -149,6 +160,35 @@ def check_aspect(path: Path, img_size: tuple[int, int], cam_size: tuple[int, int
         raise SceneFormatError(
             f"image {path} is {w}x{h} but its camera is {cw}x{ch} (aspect {cw / ch:.4f} vs {w / h:.4f}); "
             "the image folder does not match the camera model (a rotated image, or images from another capture?)")
+
+
+def check_min_size(where: object, size: tuple[int, int], rule: ResolutionRule, source: tuple[int, int]) -> None:
+    """Refuse images smaller than ``MIN_SIDE`` on a side after the resolution rule, naming the fix."""
+    w, h = size
+    if min(w, h) < MIN_SIDE:
+        raise SceneFormatError(
+            f"{where}: the images are {w}x{h} px after the resolution rule ({rule.label or rule.name}; from "
+            f"{source[0]}x{source[1]}), under the {MIN_SIDE} px a side that a score needs (one renderer tile; "
+            "SSIM's window is 11 px). Use a larger protocol.max_width, or a rule that keeps more pixels "
+            "(dataset.rule=native)")
+
+
+def check_pinhole(where: str, K: np.ndarray, size: tuple[int, int]) -> None:
+    """A camera's intrinsics can render its image: focal lengths finite and positive, the principal
+    point finite and within ``PRINCIPAL_POINT_SLACK`` image sizes of the frame. ``where`` names the
+    file and the camera or frame; the error says what to fix."""
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    w, h = size
+    bad = [f"{n} = {v:g}" for n, v in (("fx", fx), ("fy", fy)) if not (math.isfinite(v) and v > 0)]
+    if bad:
+        raise SceneFormatError(f"{where}: focal length {', '.join(bad)}; a focal length is a positive number of "
+                               "pixels. Fix the camera's calibration (or remove the camera and its images)")
+    s = PRINCIPAL_POINT_SLACK
+    if not all(math.isfinite(v) for v in (cx, cy)) or not (-s * w <= cx <= (1 + s) * w and -s * h <= cy <= (1 + s) * h):
+        raise SceneFormatError(
+            f"{where}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies more than one image size outside its "
+            f"{w}x{h} image; cx and cy are pixels from the image's top-left corner (about {w / 2:g}, {h / 2:g} "
+            "for an undistorted camera). Fix the camera's calibration (pixels, not normalised units)")
 
 
 def check_scene_scale(images: Sequence[tuple[Path, tuple[int, int], tuple[int, int]]], tol_px: float = 1.5) -> None:

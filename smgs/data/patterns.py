@@ -12,12 +12,17 @@ pixels (the image spans 1 world unit at depth 1), the same view for train and te
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
 from smgs.camera import Camera
+from smgs.data.formats import SceneRequest
+from smgs.data.images import MIN_SIDE
 from smgs.data.scene import Scene, View
+from smgs.ranges import Range
 
 PATTERNS: tuple[str, ...] = ("circle4", "rect4", "oval4")
 
@@ -94,3 +99,16 @@ def write_targets(out_dir: str | Path, width: int = 256) -> list[Path]:
         Image.fromarray(make_pattern(name, width).numpy()).save(p, optimize=True)
         paths.append(p)
     return paths
+
+
+@dataclass(frozen=True)
+class PatternFormat:
+    """The 2D patterns as a scene format (``kind: pattern``): the scene's name is the pattern
+    (``PATTERNS``), ``size`` its side in px."""
+
+    size: int = 128
+
+    RANGES: ClassVar[dict[str, Range]] = {"size": Range(MIN_SIDE, integer=True)}
+
+    def load(self, request: SceneRequest) -> Scene:
+        return pattern_scene(request.scene, self.size)

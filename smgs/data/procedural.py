@@ -12,12 +12,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.data.scene import Scene, View, camera_extent, split_description, split_every
+from smgs.data.formats import SceneRequest
+from smgs.data.images import MIN_SIDE
+from smgs.data.scene import Scene, View, camera_extent, check_split, split_description, split_every
+from smgs.ranges import Range
 
 _EPS = 1e-9
 
@@ -256,6 +260,16 @@ def sample_points(world: ProceduralWorld, cams: list[Camera], n_points: int, rng
     return p, c
 
 
+def view_name(i: int) -> str:
+    return f"view_{i:03d}"
+
+
+def check_procedural_split(n_views: int, test_every: int | None) -> None:
+    """The procedural scene's hold-out leaves a view to train on (``check_split``)."""
+    tr, _ = split_every([view_name(i) for i in range(n_views)], test_every)
+    check_split(f"the procedural scene (dataset.n_views={n_views})", n_views, len(tr), split_description(test_every))
+
+
 def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), seed: int = 0,
                           test_every: int | None = 8, n_points: int = 3000, supersample: int = 3,
                           n_trajectory: int = 48, pos_noise: float = 0.01, color_noise: float = 0.03) -> Scene:
@@ -264,6 +278,7 @@ def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), 
     trajectory of ``n_trajectory`` cameras on a ring between the training views' heights."""
     if n_views < 2:
         raise ValueError(f"n_views must be >= 2, got {n_views}")
+    check_procedural_split(n_views, test_every)
     width, height = int(size[0]), int(size[1])
     world = make_world(seed)
     rng = np.random.default_rng(seed + 1)
@@ -271,7 +286,7 @@ def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), 
     views = []
     for i, cam in enumerate(cams):
         img, _ = render_view(world, cam, supersample)
-        views.append(View(cam, torch.from_numpy(img), f"view_{i:03d}"))
+        views.append(View(cam, torch.from_numpy(img), view_name(i)))
     tr, te = split_every([v.name for v in views], test_every)
     pts, cols = sample_points(world, cams, n_points, rng, pos_noise, color_noise)
     traj = ring_cameras(n_trajectory, width, height, height_amp=0.0, phase=math.pi / n_views) if n_trajectory else None
@@ -300,3 +315,24 @@ def make_procedural_scene(n_views: int = 24, size: tuple[int, int] = (128, 96), 
                  extent=camera_extent([v.camera for v in train]),
                  points=torch.from_numpy(pts).float(), point_colors=torch.from_numpy(cols).float(),
                  background=torch.tensor(world.background, dtype=torch.float32), trajectory=traj, meta=meta)
+
+
+@dataclass(frozen=True)
+class ProceduralFormat:
+    """The procedural scene as a scene format (``kind: procedural``): ``n_views`` ring cameras of
+    ``width`` x ``height`` px, made from ``seed``; one scene, whatever its name."""
+
+    n_views: int = 24
+    width: int = 128
+    height: int = 96
+    seed: int = 0
+
+    RANGES: ClassVar[dict[str, Range]] = {"n_views": Range(2, integer=True), "width": Range(MIN_SIDE, integer=True),
+                                          "height": Range(MIN_SIDE, integer=True), "seed": Range(0, integer=True)}
+
+    def load(self, request: SceneRequest) -> Scene:
+        return make_procedural_scene(n_views=self.n_views, size=(self.width, self.height), seed=self.seed,
+                                     test_every=request.test_every)
+
+    def check(self, request: SceneRequest) -> None:
+        check_procedural_split(self.n_views, request.test_every)

@@ -108,7 +108,8 @@ def check_split(where: object, n_images: int, n_train: int, split: str) -> None:
     empty list of views."""
     if n_train == 0:
         raise SceneFormatError(f"{where}: {n_images} image(s) and none left to train on after the split "
-                               f"({split}); a scene needs at least 2 images (one to train on, one to test)")
+                               f"({split}); a scene needs at least 2 images (one to train on, one to test) and "
+                               "a hold-out of every n-th image with n ≥ 2 (protocol.test_every)")
 
 
 def split_description(test_every: int | None) -> str:

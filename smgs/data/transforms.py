@@ -36,8 +36,9 @@ import numpy as np
 import torch
 
 from smgs.camera import Camera
-from smgs.data.images import (ResolutionRule, check_aspect, check_scene_scale, describe_resampling, image_size,
-                              parallel_map, read_image, resize_image, scale_intrinsics)
+from smgs.data.images import (ResolutionRule, check_aspect, check_min_size, check_pinhole, check_scene_scale,
+                              describe_resampling, image_size, parallel_map, read_image, resize_image,
+                              scale_intrinsics)
 from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
                              camera_extent, check_split, split_description, split_every)
@@ -121,28 +122,56 @@ def _pose_opencv(c2w_gl, where: str) -> np.ndarray:
     return np.linalg.inv(c2w)
 
 
+def _number(cam: dict, key: str, where: str, default: float | None = None) -> float | None:
+    """``cam[key]`` as a finite number (``default`` when absent); NaN, inf or a word is refused."""
+    if key not in cam:
+        return default
+    try:
+        v = float(cam[key])
+    except (TypeError, ValueError):
+        v = math.nan
+    if not math.isfinite(v):
+        raise SceneFormatError(f"{where}: {key} = {cam[key]!r} is not a finite number; fix it in the file")
+    return v
+
+
+def _focal_from_angle(cam: dict, key: str, size: int, where: str) -> float:
+    """The focal length (px) of a field of view ``cam[key]`` in radians across ``size`` pixels."""
+    angle = _number(cam, key, where)
+    if not 0 < angle < math.pi:
+        across = "horizontal" if key.endswith("x") else "vertical"
+        raise SceneFormatError(f"{where}: {key} = {angle:g} is no field of view; it is the {across} angle of view "
+                               "in radians, between 0 and π (0.69 for a 50 mm lens on a 36 mm wide sensor)")
+    return 0.5 * size / math.tan(0.5 * angle)
+
+
 def _intrinsics(cam: dict, file_size: tuple[int, int], where: str) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
-    """(K, (w, h) that K refers to, OpenCV distortion vector)."""
+    """(K, (w, h) that K refers to, OpenCV distortion vector); values that cannot render (a focal
+    length of 0 or NaN, a principal point far off the image, a NaN distortion) are refused naming
+    the file, the frame and the key."""
     if str(cam.get("camera_model", "OPENCV")).upper() not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE") or cam.get("is_fisheye"):
         raise SceneFormatError(f"{where}: camera model {cam.get('camera_model', 'fisheye')!r} is not supported; "
                                "undistort the images to a pinhole camera first")
-    w = int(round(float(cam.get("w", file_size[0]))))
-    h = int(round(float(cam.get("h", file_size[1]))))
+    w = int(round(_number(cam, "w", where, file_size[0])))
+    h = int(round(_number(cam, "h", where, file_size[1])))
+    if w <= 0 or h <= 0:
+        raise SceneFormatError(f"{where}: image size w x h = {w}x{h}; w and h are the image's size in pixels")
     if "fl_x" in cam:
-        fx = float(cam["fl_x"])
+        fx = _number(cam, "fl_x", where)
     elif "camera_angle_x" in cam:
-        fx = 0.5 * w / math.tan(0.5 * float(cam["camera_angle_x"]))
+        fx = _focal_from_angle(cam, "camera_angle_x", w, where)
     else:
         raise SceneFormatError(f"{where}: no focal length (fl_x or camera_angle_x); expected {LAYOUT}")
     if "fl_y" in cam:
-        fy = float(cam["fl_y"])
+        fy = _number(cam, "fl_y", where)
     elif "camera_angle_y" in cam and "fl_x" not in cam:
-        fy = 0.5 * h / math.tan(0.5 * float(cam["camera_angle_y"]))
+        fy = _focal_from_angle(cam, "camera_angle_y", h, where)
     else:
         fy = fx
-    cx, cy = float(cam.get("cx", w / 2)), float(cam.get("cy", h / 2))
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-    dist = np.array([float(cam.get(k, 0.0)) for k in DIST_KEYS])
+    K = np.array([[fx, 0, _number(cam, "cx", where, w / 2)], [0, fy, _number(cam, "cy", where, h / 2)], [0, 0, 1]],
+                 dtype=np.float64)
+    check_pinhole(where + " (fl_x, fl_y, cx, cy)", K, (w, h))
+    dist = np.array([_number(cam, k, where, 0.0) for k in DIST_KEYS])
     return K, (w, h), dist
 
 
@@ -185,6 +214,68 @@ class _Entry:
     where: str
 
 
+@dataclass(frozen=True)
+class TransformsSources:
+    """What a transforms.json scene is loaded from, each part found and checked (``transforms_sources``)."""
+
+    path: Path
+    files: dict[str, dict]
+    base: Path
+    entries: list[_Entry]
+    rule: ResolutionRule
+    split: tuple[list[int], list[int], str]   # train and test indices into entries, and how chosen
+
+    @property
+    def root(self) -> dict:
+        return next(iter(self.files.values()))
+
+
+def transforms_sources(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
+                       factor: float | None = None, max_width: int | None = None, resample: str | None = None,
+                       test_every: int | None = 8) -> TransformsSources:
+    """Everything ``load_transforms`` checks before it decodes a pixel: the files, every frame's image
+    file (each used by one frame only) and intrinsics, a split that leaves a view to train on and
+    holds none out that also trains, and images of at least ``MIN_SIDE`` px under the rule. The
+    runner calls it for each scene before any cell runs."""
+    if isinstance(rule, str):
+        rule = get_generic_rule(rule)
+    rule = rule.with_overrides(factor=factor, max_width=max_width, resample=resample)
+    if images == "auto":
+        raise ValueError("images='auto' is for COLMAP scenes; name the folder (e.g. 'images_4')")
+    path = Path(path)
+    files, base, sources = _find_transforms(path)
+    entries = _entries(files, base, images, sources)
+    _check_unique_images(entries)
+    for e in entries:
+        _intrinsics(e.cam, _reference_size(base, images, e), e.where)
+    names = [_frame_name(e.frame["file_path"]) for e in entries]
+    split = _split(files, sources, entries, names, test_every)
+    check_split(base, len(entries), len(split[0]), split[2])
+    src = image_size(entries[0].path)
+    check_min_size(entries[0].path, rule.target_size(*src), rule, src)
+    return TransformsSources(path, files, base, entries, rule, split)
+
+
+def _reference_size(base: Path, images: str | None, e: _Entry) -> tuple[int, int]:
+    """The size a frame's intrinsics refer to when the file gives no w, h: its image at file_path."""
+    if "w" in e.cam and "h" in e.cam:
+        return int(round(_number(e.cam, "w", e.where))), int(round(_number(e.cam, "h", e.where)))
+    return image_size(e.path if images is None else _image_path(base, e.frame["file_path"], None))
+
+
+def _check_unique_images(entries: list[_Entry]) -> None:
+    """One frame per image file: a file used twice is one view, which the split may hold out as a
+    test view while its copy trains."""
+    seen: dict[Path, _Entry] = {}
+    for e in entries:
+        key = e.path.resolve()
+        if key in seen:
+            raise SceneFormatError(
+                f"{seen[key].where} and {e.where} use the same image {e.path}: one file would be both a training "
+                "and a test view. Keep one frame per image (remove the duplicate frame)")
+        seen[key] = e
+
+
 def load_transforms(path: str | Path, images: str | None = None, rule: ResolutionRule | str = "3dgs", *,
                     factor: float | None = None, max_width: int | None = None, resample: str | None = None,
                     test_every: int | None = 8, undistort: bool = True,
@@ -197,15 +288,10 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
     rule, factor, max_width, resample: as for ``load_colmap`` (the rule's ``images`` is not used).
     undistort: undistort non-zero distortion with OpenCV; False refuses such scenes.
     """
-    if isinstance(rule, str):
-        rule = get_generic_rule(rule)
-    rule = rule.with_overrides(factor=factor, max_width=max_width, resample=resample)
-    if images == "auto":
-        raise ValueError("images='auto' is for COLMAP scenes; name the folder (e.g. 'images_4')")
-    path = Path(path)
-    files, base, sources = _find_transforms(path)
-    root = next(iter(files.values()))
-    entries = _entries(files, base, images, sources)
+    src_files = transforms_sources(path, images, rule, factor=factor, max_width=max_width, resample=resample,
+                                   test_every=test_every)
+    path, files, base, entries, rule = src_files.path, src_files.files, src_files.base, src_files.entries, src_files.rule
+    root = src_files.root
     distorted = any(float(e.cam.get(k, 0.0)) != 0.0 for e in entries for k in DIST_KEYS)
     if distorted and not undistort:
         raise SceneFormatError(f"{base}: the cameras have non-zero distortion coefficients "
@@ -219,9 +305,8 @@ def load_transforms(path: str | Path, images: str | None = None, rule: Resolutio
     for e, (img, K, vm, _, _) in zip(entries, loaded):
         c = Camera(torch.from_numpy(K).float(), torch.from_numpy(vm).float(), img.shape[1], img.shape[0])
         views.append(View(c, torch.from_numpy(img), _frame_name(e.frame["file_path"])))
-    tr, te, split_desc = _split(files, root, entries, views, test_every)
+    tr, te, split_desc = src_files.split
     train, test = [views[i] for i in tr], [views[i] for i in te]
-    check_split(base, len(views), len(train), split_desc)
 
     src0 = loaded[0][3]
     out0 = (views[0].camera.width, views[0].camera.height)
@@ -313,10 +398,12 @@ class _FrameLoader:
         return img, K, _pose_opencv(e.frame["transform_matrix"], e.where), src, ksize
 
 
-def _split(files: dict[str, dict], root: dict, entries: list[_Entry], views: list[View],
+def _split(files: dict[str, dict], sources: dict[str, Path], entries: list[_Entry], names: list[str],
            test_every: int | None) -> tuple[list[int], list[int], str]:
     """Train and test indices (each name-sorted) and how they were chosen: separate train/test
-    files, file lists in transforms.json, else every ``test_every``-th name-sorted image."""
+    files, file lists in transforms.json, else every ``test_every``-th name-sorted image. A name in
+    both file lists is refused: its view would be scored as held out while it trains."""
+    root = next(iter(files.values()))
     if "all" not in files:
         tr = [i for i, e in enumerate(entries) if e.split == "train"]
         te = [i for i, e in enumerate(entries) if e.split == "test"]
@@ -324,10 +411,16 @@ def _split(files: dict[str, dict], root: dict, entries: list[_Entry], views: lis
     elif "train_filenames" in root and "test_filenames" in root:
         trn = {_frame_name(n) for n in root["train_filenames"]}
         ten = {_frame_name(n) for n in root["test_filenames"]}
-        tr = [i for i, v in enumerate(views) if v.name in trn]
-        te = [i for i, v in enumerate(views) if v.name in ten]
+        both = sorted(trn & ten)
+        if both:
+            raise SceneFormatError(
+                f"{sources['all']}: {len(both)} image(s) in both train_filenames and "
+                f"test_filenames ({', '.join(both[:5])}{' …' if len(both) > 5 else ''}): a training view would be "
+                "scored as held out. List each image in one of them")
+        tr = [i for i, n in enumerate(names) if n in trn]
+        te = [i for i, n in enumerate(names) if n in ten]
         split_desc = "explicit: train_filenames / test_filenames in transforms.json"
     else:
-        tr, te = split_every([v.name for v in views], test_every)
+        tr, te = split_every(names, test_every)
         split_desc = split_description(test_every)
-    return sorted(tr, key=lambda i: views[i].name), sorted(te, key=lambda i: views[i].name), split_desc
+    return sorted(tr, key=lambda i: names[i]), sorted(te, key=lambda i: names[i]), split_desc

@@ -18,6 +18,10 @@ One element ``vertex``, one float32 property per value, binary little-endian, in
   extent from ``comment smgs extent <value>`` (γ is stored relative to the scene extent). A file
   without those comments is read with exp and the scene's extent (smgs's defaults).
 
+* Other tools' properties: normals and ``red green blue`` (a point cloud's preview colours) are
+  read past; Mip-Splatting's ``filter_3D`` is folded into scale and opacity as its fused export
+  does (``fold_filter_3d``); any other property (a 4D model's time and motion) is refused by name.
+
 ``comment smgs <key> <value>`` lines also carry the render settings of the model (mode, k_max,
 eq15, t_min, clamp_colors) so a model renders the same after a round trip.
 
@@ -37,12 +41,21 @@ import plyfile
 from numpy.lib.recfunctions import structured_to_unstructured
 
 from smgs.atomic import atomic_file
+from smgs.raster.constants import MAX_SH_DEGREE
 
 EXTRAS: tuple[str, ...] = ("gef_alpha", "softmax_beta", "softmax_gamma")
 """The Softmax-GS extra properties (raw, pre-activation values)."""
 
 ACTIVATIONS = ("exp", "softplus")
-MAX_SH_DEGREE = 3
+
+FILTER_3D = "filter_3D"
+"""Mip-Splatting's per-Gaussian 3D smoothing filter (a world length), folded in on reading."""
+FILTER_3D_NOTE = ("folded into scale and opacity as Mip-Splatting's save_fused_ply does; its 2D Mip filter is not "
+                  "reproduced (rendered with 3DGS's screen-space dilation)")
+
+NOT_RENDERED = frozenset({"nx", "ny", "nz", "red", "green", "blue"})
+"""Properties of other tools that do not change how a model renders: normals (zeros in 3DGS files)
+and a point cloud's 8-bit preview colours. Any other unknown property is refused (``read_ply``)."""
 _COMMENT = "smgs"
 
 
@@ -152,7 +165,8 @@ def write_ply(path: Path | str, splats: PlySplats) -> Path:
 
 def read_ply(path: Path | str) -> PlySplats:
     """Read a 3DGS PLY: the SH degree from the number of ``f_rest_*`` properties, normals optional,
-    Softmax-GS extras recognised, other properties ignored (listed in ``meta["ignored"]``).
+    Softmax-GS extras recognised, Mip-Splatting's ``filter_3D`` folded in (``fold_filter_3d``),
+    preview colours read past (listed in ``meta["ignored"]``), any other property refused.
     Raises ``PlyFormatError`` (file, problem, expectation) for anything else."""
     path = Path(path)
     if not path.is_file():
@@ -199,11 +213,12 @@ def read_ply(path: Path | str) -> PlySplats:
                              "f_rest_0 .. f_rest_{M-1} without gaps")
     degree = _degree(path, m)
     k = (degree + 1) ** 2
+    _check_rendered(path, names, set(base) | {f"f_rest_{i}" for i in range(m)} | set(EXTRAS) | {FILTER_3D})
     # one float32 table [N, P] in one pass (any scalar type, either byte order); columns are
     # gathered by index, row by row (a strided pass per column would cost one pass per property)
     table = structured_to_unstructured(np.asarray(vertex.data), dtype=np.float32)
     where = {q: i for i, q in enumerate(names)}
-    checked = base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS if e in present]
+    checked = base + [f"f_rest_{i}" for i in range(m)] + [e for e in EXTRAS + (FILTER_3D,) if e in present]
     _check_finite(path, _nonfinite(table[:, [where[q] for q in checked]], checked))
 
     def stack(keys: list[str]) -> np.ndarray:
@@ -212,19 +227,53 @@ def read_ply(path: Path | str) -> PlySplats:
     rest = stack([f"f_rest_{i}" for i in range(m)]).reshape(n, 3, k - 1).transpose(0, 2, 1)
     sh = np.concatenate([stack(["f_dc_0", "f_dc_1", "f_dc_2"])[:, None, :], rest], axis=1)
     extras = {e: stack([e])[:, 0] for e in EXTRAS if e in present}
-    known = set(base) | {"nx", "ny", "nz"} | {f"f_rest_{i}" for i in range(m)} | set(extras)
-    ignored = [q for q in names if q not in known]
+    ignored = [q for q in names if q in NOT_RENDERED - {"nx", "ny", "nz"}]
     if ignored:
         meta["ignored"] = " ".join(ignored)
+    scales, opacities = stack(["scale_0", "scale_1", "scale_2"]), stack(["opacity"])[:, 0]
+    if FILTER_3D in present:
+        scales, opacities = fold_filter_3d(path, scales, opacities, stack([FILTER_3D])[:, 0])
+        meta[FILTER_3D] = FILTER_3D_NOTE
     for e, kind in ((e, meta.get(f"activation.{e}")) for e in extras):
         if kind is not None and kind not in ACTIVATIONS:
             raise PlyFormatError(path, f"comment 'smgs activation.{e} {kind}'", f"one of {list(ACTIVATIONS)}")
-    out = PlySplats(stack(["x", "y", "z"]), np.ascontiguousarray(sh), stack(["opacity"])[:, 0],
-                    stack(["scale_0", "scale_1", "scale_2"]), stack(["rot_0", "rot_1", "rot_2", "rot_3"]),
-                    extras, meta)
+    out = PlySplats(stack(["x", "y", "z"]), np.ascontiguousarray(sh), opacities, scales,
+                    stack(["rot_0", "rot_1", "rot_2", "rot_3"]), extras, meta)
     out.check(path)
     _check_activations(path, out)
     return out
+
+
+def _check_rendered(path: Path, names: list[str], rendered: set[str]) -> None:
+    """Every property is one smgs renders or one that does not change rendering (``NOT_RENDERED``):
+    another is refused by name, since a model scored without it is another model."""
+    unknown = [q for q in names if q not in rendered and q not in NOT_RENDERED]
+    if unknown:
+        raise PlyFormatError(path, f"properties smgs cannot render: {_short(unknown)} (a model that needs them, such "
+                             "as a 4D or spacetime model's time and motion, would be scored as another model)",
+                             "the 3DGS properties, with smgs's extras, Mip-Splatting's filter_3D, normals or "
+                             "red/green/blue beside them; if those properties do not change how the model renders, "
+                             "write the file without them")
+
+
+def fold_filter_3d(path: Path, scales: np.ndarray, opacities: np.ndarray,
+                   filter_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mip-Splatting's 3D smoothing filter folded into the Gaussians it filters, as its own
+    ``save_fused_ply`` does for viewers: each scale becomes sqrt(s² + f²) and the opacity is multiplied
+    by sqrt(Π s² / Π (s² + f²)) (the filtered Gaussian's peak), f the per-Gaussian filter_3D (a world
+    length). Takes and returns raw values (log scales, opacity logits); computed in float64."""
+    f = filter_3d.astype(np.float64)
+    if (f < 0).any():
+        i = int(np.flatnonzero(f < 0)[0])
+        raise PlyFormatError(path, f"filter_3D has {int((f < 0).sum())} negative value(s) (vertex {i}: {f[i]:g})",
+                             "filter_3D a world length ≥ 0 (Mip-Splatting's 3D filter size)")
+    raw = scales.astype(np.float64)
+    log_sum = 0.5 * np.log(np.exp(2 * raw) + f[:, None] ** 2)            # log sqrt(s² + f²)
+    log_coef = (raw - log_sum).sum(axis=1)                                 # log sqrt(Π s² / Π (s² + f²))
+    o = opacities.astype(np.float64)
+    log_p = -np.logaddexp(0, -o) + log_coef                               # log(sigmoid(o) · coef)
+    logit = log_p - np.log(-np.expm1(log_p))
+    return log_sum.astype(np.float32), logit.astype(np.float32)
 
 
 # exp overflows float32 above log(FLT_MAX) ≈ 88.72: a finite raw value that would render as inf

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from typing import Callable
 
@@ -18,20 +19,20 @@ from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import num_sh_bases
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats
 
-# name -> (module, function); every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
+# name -> "module:function"; every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
 # (smgs.raster.composite_inputs). Imported lazily so that listing backends never compiles or loads
 # a kernel.
-_BACKENDS: dict[str, tuple[str, str]] = {
-    "reference": ("smgs.raster.reference", "rasterize_splats_reference"),
-    "cpu": ("smgs.raster.cpu", "rasterize_splats_cpu"),
-    "cuda": ("smgs.raster.cuda", "rasterize_splats_cuda"),
+_BACKENDS: dict[str, str] = {
+    "reference": "smgs.raster.reference:rasterize_splats_reference",
+    "cpu": "smgs.raster.cpu:rasterize_splats_cpu",
+    "cuda": "smgs.raster.cuda:rasterize_splats_cuda",
 }
 
 
 def _load_backend(name: str) -> Callable[..., RenderOutput]:
     if name not in _BACKENDS:
         raise ValueError(f"unknown renderer backend {name!r}; expected 'auto' or one of {', '.join(_BACKENDS)}")
-    module, fn = _BACKENDS[name]
+    module, _, fn = _BACKENDS[name].partition(":")
     return getattr(importlib.import_module(module), fn)
 
 
@@ -211,6 +212,8 @@ def _composite(splats: Splats2D, st: CompositeSettings, backend: str, kernels: s
     adds the 3D inputs'): decided before the backend runs, or, deferred (the lean GPU glue), read
     right after it."""
     _check_inputs(splats, st, chk)
+    if chk.defer:   # the lean glue: nothing of a bad input renders before the refusal (checks.InputChecks)
+        splats = dataclasses.replace(splats, opacities=chk.gate(splats.opacities))
     means2d, ray_depth = splats.means2d, splats.ray_depth
     if ray_depth is not None:
         if ray_depth.coefs.shape != (splats.n, 9):
@@ -377,19 +380,30 @@ def rasterize(
     more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
                                st) if fused else []
     chk = checks.InputChecks(defer=lean_glue)
-    chk.finite([("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
-                *_used_rest(sh_rest, sh_degree), ("camera.K", camera.K), ("camera.viewmat", camera.viewmat), *more],
-               pos_inf_ok=("gamma",))
-    chk.non_negative("scales", scales)
+    cam_named = [("camera.K", camera.K), ("camera.viewmat", camera.viewmat)]
+    if all(t.device.type == "cpu" for _, t in cam_named):   # the trainer's: decided once per camera (Camera.memo)
+        camera.memo(("finite",), lambda: checks.finite(cam_named))
+    else:
+        chk.finite(cam_named)
+    named = [("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
+             *_used_rest(sh_rest, sh_degree), *more]
+    if fused and lean_glue:   # the fused projection checks them itself: a flag it raises, read after the render
+        chk.in_kernel(named, pos_inf_ok=("gamma",), non_negative_name="scales")
+    else:
+        chk.finite(named, pos_inf_ok=("gamma",))
+        chk.non_negative("scales", scales)
     sh = None if sh_degree is None else ShColours(colors_or_sh, sh_rest, sh_degree, clamp_sh_colors)
     if fused:
         from smgs.raster.cuda_v2 import rasterize_fused
 
         coefs = colors_or_sh if sh is None or sh_rest is None else sh.coefficients()
         return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, coefs, camera, alpha, beta,
-                        gamma, background, reg_values, st, sh_degree, near_plane, eps2d, clamp_sh_colors)
-    # The camera packed on the host (with the centre where SH needs it) and copied over once.
-    view = to_device(host_view(camera, means3d.dtype, center=sh is not None), device)
+                        gamma, background, reg_values, st, sh_degree, near_plane, eps2d, clamp_sh_colors, input_checks=chk)
+    # The camera packed on the host (with the centre where SH needs it) and copied over once per
+    # camera (kept on it until it changes: Camera.memo).
+    center = sh is not None
+    view = camera.memo(("view", means3d.dtype, center, device),
+                       lambda: to_device(host_view(camera, means3d.dtype, center=center), device))
     # Lean glue: no compaction (a culled Gaussian keeps its row and renders at opacity 0), so no
     # host wait; on the CUDA backend's plain path only (the host paths take compacted splats).
     dense = lean_glue and on_cuda and sort == "global" and not leaders

@@ -8,12 +8,16 @@ how many entries are bad. γ = +inf is valid (a hard depth decay; the stiff-case
 
 Cost: one stacked sum per call and device and one host synchronisation per device; a non-finite
 sum (NaN/inf anywhere, or an overflow of finite values) then counts the bad entries per tensor to
-decide and to name them. ``InputChecks`` with ``defer`` (the lean GPU glue) keeps the sums of GPU
-tensors on the GPU and reads them after the render, with the render's own wait.
+decide and to name them. ``InputChecks`` with ``defer`` (the lean GPU glue) keeps the checks of GPU
+tensors on the GPU (each tensor's min and max, or a flag the fused projection kernel raises) and
+reads them after the render, with the render's own wait; before the render, the splats' opacities
+are made NaN where an input is bad, so that no backend renders anything of them (a NaN splat's
+tile box is the whole image).
 """
 
 from __future__ import annotations
 
+import math
 import operator
 
 import torch
@@ -90,16 +94,23 @@ def non_negative(name: str, t: torch.Tensor) -> None:
 
 class InputChecks:
     """The finiteness and sign checks of one render call. Without ``defer`` each check decides at
-    once (``finite``, ``non_negative``). With ``defer``, checks of tensors off the CPU become flags
-    on their device: ``start`` copies them to the host without waiting, just before the backend
-    runs, and ``settle`` (after it, or when it raised) reads them; a raised flag re-runs the exact
-    checks, which name the input. So a bad input still raises the same error, after the render
-    instead of before it (a non-finite splat only ever widens its tile box to the whole image)."""
+    once (``finite``, ``non_negative``). With ``defer``, checks of tensors off the CPU stay on their
+    device: each tensor's min and max (one kernel; NaN propagates, ±inf shows, nothing overflows),
+    or a flag a kernel raises itself (``in_kernel``/``kernel_flag``: the fused projection). ``gate``
+    makes the opacities NaN where a value is bad (every backend skips such a splat: nothing renders
+    before the refusal); ``start`` copies the values to the host without waiting, just before the
+    backend runs, and ``settle`` (after it, or when it raised) decides on the host and re-runs the
+    exact checks of a bad input, which name it. So a bad input still raises the same error, after
+    the render instead of before it."""
 
     def __init__(self, defer: bool = False) -> None:
         self.defer = defer
-        self._flags: list[torch.Tensor] = []
-        self._exact: list = []          # what re-runs when a flag is raised
+        self._finite: list[torch.Tensor] = []   # 0-dim device values, finite where their input is
+        self._signs: list[torch.Tensor] = []    # 0-dim device values, >= 0 where their input is
+        self._flags: list[torch.Tensor] = []    # kernels' int flags [1], non-zero where an input is bad
+        self._exact: list = []                  # what re-runs (and names the input) when a value is bad
+        self._kernel_exact = None               # the exact checks of what a kernel checks (in_kernel)
+        self._stacked: torch.Tensor | None = None
         self._host: torch.Tensor | None = None
         self._event: Event | None = None
 
@@ -110,9 +121,12 @@ class InputChecks:
             return
         finite([(n, t) for n, t in present if t.device.type == "cpu"], pos_inf_ok)   # decided at once
         on_device = [(n, t.detach()) for n, t in present if t.device.type != "cpu"]
+        for name, t in on_device:
+            if name in pos_inf_ok:   # NaN or -inf shows in the min; +inf is allowed (min(x, 0): finite)
+                self._finite.append(t.amin().clamp(max=0.0))
+            else:
+                self._finite.extend(torch.aminmax(t))
         if on_device:
-            sums = torch.stack([t.sum().to(torch.float64) for _, t in on_device])
-            self._flags.append(~torch.isfinite(sums).all())
             self._exact.append(lambda: finite(on_device, pos_inf_ok))
 
     def non_negative(self, name: str, t: torch.Tensor) -> None:
@@ -120,25 +134,78 @@ class InputChecks:
             non_negative(name, t)
         elif t.numel():
             t = t.detach()
-            self._flags.append((t < 0).any())
+            self._signs.append(t.amin())
             self._exact.append(lambda: non_negative(name, t))
 
+    def in_kernel(self, named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = (),
+                  non_negative_name: str | None = None) -> None:
+        """These are checked by a kernel of the render itself, which culls what is bad and raises a
+        flag (``kernel_flag``): nothing to launch here; ``non_negative_name`` names the input whose
+        sign it checks too."""
+        present = [(n, t.detach()) for n, t in named if t is not None and t.numel()]
+        sign = dict(present).get(non_negative_name) if non_negative_name else None
+
+        def exact() -> None:
+            finite(present, pos_inf_ok)
+            if sign is not None:
+                non_negative(non_negative_name, sign)
+        self._kernel_exact = exact
+
+    @property
+    def awaits_kernel_flag(self) -> bool:
+        """Whether ``in_kernel`` left checks to a kernel whose flag has not come yet."""
+        return self._kernel_exact is not None
+
+    def kernel_flag(self, bad: torch.Tensor) -> None:
+        """The flag of the kernel that made the ``in_kernel`` checks (non-zero: an input was bad)."""
+        self._flags.append(bad)
+        self._exact.append(self._kernel_exact)
+        self._kernel_exact = None
+
+    def _values(self) -> torch.Tensor | None:
+        """Every deferred value in one device tensor (finite values, signs, kernel flags), made once."""
+        if self._stacked is None and (self._finite or self._signs or self._flags):
+            vals = self._finite + self._signs
+            if not self._flags and len(vals) == 1:
+                self._stacked = vals[0].reshape(1)
+            elif not vals and len(self._flags) == 1:
+                self._stacked = self._flags[0]
+            else:
+                dtype = vals[0].dtype if vals else torch.float32
+                self._stacked = torch.cat([torch.stack(vals)] if vals else []
+                                          + [f.to(dtype) for f in self._flags])
+        return self._stacked
+
+    def gate(self, opacities: torch.Tensor) -> torch.Tensor:
+        """``opacities``, NaN throughout where a deferred finite value is bad (with the lean glue, before
+        the render): every backend skips a splat whose opacity is not >= 1/255, so nothing of a bad
+        input renders (a non-finite splat's tile box is the whole image). The gate carries no gradient."""
+        vals = self._values()
+        if not self._finite or vals is None:
+            return opacities
+        m = vals[:len(self._finite)].abs().amax()    # finite, or the inf/NaN of a bad input
+        return opacities + (m - m).to(opacities.dtype)
+
     def start(self) -> None:
-        """Copy the flags to the host without waiting (call just before the backend runs)."""
-        if self._flags and self._host is None:
-            flags = self._flags[0] if len(self._flags) == 1 else torch.stack(self._flags).any()
-            self._host, self._event = to_host_async(flags)
+        """Copy the deferred values to the host without waiting (call just before the backend runs)."""
+        vals = self._values()
+        if vals is not None and self._host is None:
+            self._host, self._event = to_host_async(vals)
 
     def settle(self) -> None:
-        """Raise for a bad input; waits only where nothing has waited past the flags' copy yet."""
-        if not self._flags:
+        """Raise for a bad input; waits only where nothing has waited past the values' copy yet."""
+        if self._values() is None:
             return
         self.start()
         if self._event is not None and not self._event.query():
             self._event.synchronize()
-        raised = bool(self._host)
-        self._flags, self._host, self._event = [], None, None
+        host = self._host.tolist()
+        nf, ns = len(self._finite), len(self._signs)
+        raised = (not all(math.isfinite(v) for v in host[:nf]) or not all(v >= 0 for v in host[nf:nf + ns])
+                  or any(v != 0 for v in host[nf + ns:]))
+        exact = self._exact
+        self._finite, self._signs, self._flags, self._exact = [], [], [], []
+        self._stacked, self._host, self._event = None, None, None
         if raised:
-            for exact in self._exact:
-                exact()
-        self._exact = []
+            for check in exact:
+                check()

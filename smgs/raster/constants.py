@@ -53,6 +53,9 @@ NEAR_PLANE = 0.01
 TILE_SIZE = 16
 """Tile edge in pixels for binning in the compiled backends (tiling never changes an image)."""
 
+MAX_SH_DEGREE = 3
+"""The highest spherical-harmonics degree the renderer evaluates (16 coefficients per channel)."""
+
 DEFAULT_K_MAX = 128
 """Softmax competition applies to the first k_max splats that reach a pixel (paper, Sec. 3.3)."""
 

@@ -39,6 +39,10 @@ SOURCES = ("cuda_binding.cpp", "cuda_kernel.cu")
 # tests (q <= 4.5, a >= 1/255, T < 1e-4) see the same numbers as the other backends.
 CUDA_CFLAGS = ["-O3", "--fmad=false"]
 CFLAGS = ["-O3"]
+# The binning indexes each splat's four-int pixel box with 32-bit arithmetic (4·i in prepare and
+# emit, csrc/cuda_kernel.cu), so one render bins at most 2^29 splats; more are refused here with the
+# fix rather than overflowing on the GPU.
+MAX_SPLATS = 2**29
 # Bound of the backward's softmax-head scratch (k_max entries per pixel of the tiles in flight);
 # larger frames are processed in chunks of tiles, so memory never grows with pixels x k_max.
 HEAD_BUDGET_BYTES = 512 * 2**20
@@ -89,6 +93,13 @@ def extension(t_min: float = K.T_MIN):
     other than the default is compiled in (``-DSMGS_T_MIN``; the CPU backend takes it at run
     time): one more build per value, cached like the default one."""
     return _JIT.module(t_min)
+
+
+def check_splat_count(n: int) -> None:
+    """Refuse more splats than the CUDA binning indexes (``MAX_SPLATS``), naming the way out."""
+    if n > MAX_SPLATS:
+        raise ValueError(f"{n:,} splats in one render: the CUDA kernels bin at most {MAX_SPLATS:,} (2^29, their "
+                         "32-bit box indexing); prune the model below that, or render with backend='cpu'")
 
 
 def composite_forward(ctx, ext, inputs: tuple, st: CompositeSettings, *cull: torch.Tensor | None) -> tuple:
@@ -149,6 +160,7 @@ def composite(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
                          "or cull marks; rasterize_splats routes those elsewhere (docs/cuda.md)")
     if splats.n == 0:   # nothing to composite (kernel_args.no_splats); the kernel is not called
         return no_splats(splats, st)
+    check_splat_count(splats.n)
     args = kernel_inputs(splats, st)
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDA.apply(*args, st, ext)
     return kernel_output(st, rgb, alpha_out, depth, reg if splats.reg_values is not None else None, cnt, pairs,

@@ -107,6 +107,7 @@ def composite(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     projection's culled Gaussians)."""
     if splats.n == 0:   # nothing to composite (kernel_args.no_splats, as the default kernels' wrapper)
         return no_splats(splats, st)
+    cuda.check_splat_count(splats.n)
     args = kernel_inputs(splats, st)
     r = None if splats.radii is None else splats.radii.detach().contiguous()
     rgb, alpha_out, depth, reg, cnt, pairs, _, last = _RasterizeCUDAv2.apply(*args, r, st, ext)
@@ -123,19 +124,32 @@ def rasterize_fused(means3d: torch.Tensor, quats: torch.Tensor, scales: torch.Te
                     colors_or_sh: torch.Tensor, camera: Camera, alpha: torch.Tensor | None,
                     beta: torch.Tensor | None, gamma: torch.Tensor | None, background: torch.Tensor | None,
                     reg_values: torch.Tensor | None, st: CompositeSettings, sh_degree: int | None, near_plane: float,
-                    eps2d: float, clamp_sh_colors: bool, exts: tuple | None = None) -> RenderOutput:
+                    eps2d: float, clamp_sh_colors: bool, exts: tuple | None = None, input_checks=None) -> RenderOutput:
     """``smgs.raster.rasterize`` on CUDA tensors through the opt-in kernels, the inputs already checked
     there: the fused projection (and SH) of every Gaussian, then the v2 compositing, which skips the
     culled rows. No gathers: the extras' ``ids`` are all Gaussians (``arange``), ``radii`` (0, 0)
     marking the culled ones, as the densification statistics read them. ``exts`` = (projection,
-    compositing) stand-ins for the CPU plumbing test."""
+    compositing) stand-ins for the CPU plumbing test. ``input_checks`` (``checks.InputChecks``)
+    where it left the input checks to the kernels (the lean glue, ``in_kernel``): the projection
+    makes them, culling what is bad, and its flag is copied to the host before the compositing's
+    wait, which it then rides on."""
     from smgs.raster import projection_cuda
 
     pext, cext = exts if exts is not None else (projection_cuda.extension(), extension(st.t_min))
     sh = colors_or_sh if sh_degree is not None else None
+    chk, checks = input_checks, None
+    if chk is not None and chk.awaits_kernel_flag:
+        checks = projection_cuda.KernelChecks(
+            [("opacities", opacities), ("colors", None if sh is not None else colors_or_sh),
+             ("alpha", alpha if st.use_gef else None), ("beta", beta if st.use_softmax else None),
+             ("gamma", gamma if st.use_softmax else None), ("reg_values", reg_values)],
+            pos_inf_ok=("gamma",), background=background)
     proj = projection_cuda.project_fused(means3d, quats, scales, camera, sh=sh, sh_degree=sh_degree,
                                          clamp_sh_colors=clamp_sh_colors, near_plane=near_plane, eps2d=eps2d,
-                                         ext=pext)
+                                         ext=pext, checks=checks)
+    if checks is not None:
+        chk.kernel_flag(proj.bad)
+        chk.start()
     colors = proj.colors if sh is not None else colors_or_sh
     out = composite(cext, Splats2D(proj.means2d, proj.conics, opacities, colors, proj.depths, alpha, beta, gamma,
                                    background, reg_values, radii=proj.radii), st)
@@ -185,6 +199,7 @@ def composite_pixel(ext, splats: Splats2D, st: CompositeSettings) -> RenderOutpu
     window of ``st.window`` splats (``splats.ray_depth``), or (``ray_depth`` None) the global order
     for the leading-splat map (zero peak-depth coefficients make every key the centre depth, which a
     window of 1 keeps in order), as ``cpu._per_pixel``."""
+    cuda.check_splat_count(splats.n)
     args = kernel_inputs(splats, st)
     ray_depth = splats.ray_depth
     what = "sort='per_pixel'" if ray_depth is not None else "leaders=True"

@@ -355,8 +355,8 @@ def _output(T, A, C, background, stats: RenderStats, reg, lead, width: int, heig
     alpha (0 where alpha is 0), and the optional sums and leading-splat map, as [H, W, ...]."""
     n_ch = C.shape[1] - 1
     rgb = C[:, :n_ch]
-    if background is not None:
-        rgb = rgb + T[:, None] * background.to(C.dtype)[None, :]
+    if background is not None:   # a host background with device splats (the compiled backends take it so)
+        rgb = rgb + T[:, None] * background.to(device=C.device, dtype=C.dtype)[None, :]
     pos = A > 0
     depth = torch.where(pos, C[:, n_ch] / torch.where(pos, A, torch.ones_like(A)), torch.zeros_like(A))
     shape = (height, width)

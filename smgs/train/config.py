@@ -11,11 +11,17 @@ import dataclasses
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Callable, Literal, TypeVar
+from typing import Any, Callable, ClassVar, Literal, TypeVar
 
 from smgs.raster import constants as K
+from smgs.ranges import Range, range_problems
 
 T = TypeVar("T")
+
+
+RATE = Range(0)                      # a learning rate (0 freezes the parameter)
+COUNT = Range(1, integer=True)       # an interval or a count of steps or things
+FRACTION = Range(0, 1, lo_open=True, hi_open=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -33,6 +39,9 @@ class ParamInit:
 
     init: float
     activation: Literal["exp", "softplus"] = "exp"
+
+    # both activations reach 0 only in the limit: the raw value of 0 would be -inf
+    RANGES: ClassVar[dict[str, Range]] = {"init": Range(0, lo_open=True)}
 
 
 @dataclass
@@ -100,6 +109,13 @@ class GaussianConfig:
     # nothing (test PSNR 5 dB).
     random_extent: float = 0.53
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "init_opacity": FRACTION,         # stored as its logit: ±inf at 0 and 1
+        "max_sh_degree": Range(0, K.MAX_SH_DEGREE, integer=True),
+        "n_flat": COUNT, "n_random": COUNT, "flat_scale": Range(0, lo_open=True),
+        "random_extent": Range(0, lo_open=True), "flat_spacing": Range(0), "flat_jitter": Range(0),
+    }
+
 
 # --------------------------------------------------------------------------------------------
 # Optimiser
@@ -127,6 +143,13 @@ class OptimConfig:
     gamma_lr: float = 4e-4
     eps: float = 1e-15
     betas: tuple[float, float] = (0.9, 0.999)
+
+    RANGES: ClassVar[dict[str, Range]] = {
+        **{f: RATE for f in ("means_lr", "means_lr_final", "sh0_lr", "shN_lr", "opacities_lr", "scales_lr",
+                             "quats_lr", "alpha_lr", "beta_lr", "gamma_lr")},
+        "means_lr_delay_mult": Range(0), "means_lr_delay_steps": Range(0, integer=True),
+        "means_lr_steps": Range(1, integer=True, optional=True), "eps": Range(0, lo_open=True),
+    }
 
 
 HPARAMS: dict[str, OptimConfig] = {
@@ -165,6 +188,9 @@ class LossConfig:
     reg_depth_scale_rel: float = 0.01
     reg_space: Literal["log", "value"] = "log"
 
+    RANGES: ClassVar[dict[str, Range]] = {"lambda_dssim": Range(0, 1), "lambda_beta_var": Range(0),
+                                          "lambda_gamma_var": Range(0), "reg_depth_scale_rel": Range(0, lo_open=True)}
+
 
 # --------------------------------------------------------------------------------------------
 # Densification
@@ -194,13 +220,15 @@ class DensifyConfig:
     ``cap_max``, the refinement schedule, ``prune_opacity`` as the dead-Gaussian threshold and the
     ``mcmc_*`` fields; it ignores the gradient, clone/split, pruning and reset fields.
     ``budget_kind`` names the budget's kind (``BUDGETS``), whose settings the section starts from
-    (``densify_config``); ``budget`` is its earlier name (``RENAMED``).
+    (``densify_config``); ``budget`` is its earlier name (``RENAMED``). ``grad_threshold``: clone or
+    split where a Gaussian's mean view-space gradient reaches it (3DGS's densify_grad_threshold,
+    gsplat's grow_grad2d, this section's own earlier name); the budget's kind sets it.
     """
 
     budget_kind: str = "full"
     enabled: bool = True
     strategy: Literal["default", "mcmc"] = "default"
-    grow_grad2d: float = 2e-4
+    grad_threshold: float = 2e-4
     cap: int | None = None
     percent_dense: float = 0.01
     split_n: int = 2
@@ -221,15 +249,29 @@ class DensifyConfig:
     mcmc_opacity_reg: float = 0.01
     mcmc_scale_reg: float = 0.01
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "grad_threshold": Range(0), "cap": Range(1, integer=True, optional=True), "percent_dense": Range(0, lo_open=True),
+        "split_n": COUNT, "prune_opacity": Range(0, 1, hi_open=True),
+        "size_prune": Range(0, lo_open=True, optional=True), "prune_screen_px": Range(0, lo_open=True, optional=True),
+        "refine_start": Range(0, integer=True), "refine_stop": Range(0, integer=True), "refine_every": COUNT,
+        "reset_every": Range(1, integer=True, optional=True), "reset_value": FRACTION,
+        **{f: Range(0) for f in ("mcmc_grow_rate", "mcmc_noise_lr", "mcmc_gate_k", "mcmc_gate_t",
+                                 "mcmc_opacity_reg", "mcmc_scale_reg")},
+    }
+    # Keys renamed since configs, checkpoints and result hashes were written with them (earlier name:
+    # name now). A dict with an earlier name reads as if it had today's (``current_keys``); a result's
+    # hash keeps the earlier form (protocols.cell), so no finished run retrains for a rename.
+    RENAMED: ClassVar[dict[str, str]] = {"budget": "budget_kind", "grow_grad2d": "grad_threshold"}
+
 
 # The budget kinds and what each sets: the one home of the paper's gradient thresholds (configs/budget/
 # names a kind; protocols read the threshold here).
 BUDGETS: dict[str, dict[str, Any]] = {
-    "full": dict(grow_grad2d=2e-4),       # 3DGS default
-    "light": dict(grow_grad2d=3e-4),      # Softmax-GS_light
-    "mini": dict(grow_grad2d=5e-4),       # Softmax-GS_mini
-    "5pct": dict(grow_grad2d=4e-3),       # 3DGS_5% / Softmax-GS_5%
-    "cap": dict(grow_grad2d=2e-4),        # a hard maximum count (set ``cap``)
+    "full": dict(grad_threshold=2e-4),       # 3DGS default
+    "light": dict(grad_threshold=3e-4),      # Softmax-GS_light
+    "mini": dict(grad_threshold=5e-4),       # Softmax-GS_mini
+    "5pct": dict(grad_threshold=4e-3),       # 3DGS_5% / Softmax-GS_5%
+    "cap": dict(grad_threshold=2e-4),        # a hard maximum count (set ``cap``)
     # 3DGS-MCMC at a hard cap (set ``cap``): refinement 500..25K every 100 (paper, gsplat), no reset.
     "mcmc": dict(strategy="mcmc", refine_stop=25_000, reset_every=None),
 }
@@ -241,7 +283,7 @@ def budget_threshold(kind: str) -> float | None:
     if kind not in BUDGETS:
         raise ValueError(f"unknown budget kind {kind!r}; known: {', '.join(BUDGETS)}")
     spec = BUDGETS[kind]
-    return None if spec.get("strategy") == "mcmc" else float(spec.get("grow_grad2d", DensifyConfig.grow_grad2d))
+    return None if spec.get("strategy") == "mcmc" else float(spec.get("grad_threshold", DensifyConfig.grad_threshold))
 
 
 def densify_config(budget_kind: str = "full", **overrides: Any) -> DensifyConfig:
@@ -285,6 +327,12 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+
+    RANGES: ClassVar[dict[str, Range]] = {
+        "steps": Range(0, integer=True), "seed": Range(0, integer=True), "k_max": Range(0, integer=True),
+        "t_min": Range(0, 1, hi_open=True), "check_finite_every": Range(0, integer=True),
+        "sh_degree_interval": Range(0, integer=True),    # 0: every degree from the start (a model trained elsewhere)
+    }
 
 
 def pattern_config(mode: str, cap: int, steps: int = 10_000, seed: int = 0) -> TrainConfig:
@@ -367,18 +415,10 @@ PRESETS: dict[type, tuple[str, Callable[..., Any]]] = {
     DensifyConfig: ("budget_kind", _densify_preset),
 }
 
-# Keys renamed since configs, checkpoints and result hashes were written with them: section -> {earlier
-# name: name now}. A dict with an earlier name is read as if it had today's (``current_keys``); a
-# result's hash keeps the earlier form (protocols.cell), so no finished run retrains for a rename.
-RENAMED: dict[type, dict[str, str]] = {
-    DensifyConfig: {"budget": "budget_kind"},
-}
-
-
 def current_keys(cls: type, data: dict[str, Any], where: str = "") -> dict[str, Any]:
-    """``data`` (a section of type ``cls``) with its earlier key names (``RENAMED``) as today's; one
-    given under both names is an error that names them."""
-    renamed = {old: new for old, new in RENAMED.get(cls, {}).items() if old in data}
+    """``data`` (a section of type ``cls``) with its earlier key names (the section's ``RENAMED``) as
+    today's; one given under both names is an error that names them."""
+    renamed = {old: new for old, new in getattr(cls, "RENAMED", {}).items() if old in data}
     for old, new in renamed.items():
         if new in data:
             raise ValueError(f"{cls.__name__}{' at ' + where if where else ''}: {old!r} is the earlier name of "
@@ -395,7 +435,7 @@ def earlier_train_keys(data: dict[str, Any]) -> dict[str, Any]:
     """A TrainConfig dict with each renamed key under its earlier name (``RENAMED``): the form in
     which finished results were hashed (protocols.cell.result_hash)."""
     def earlier(cls: type, section: dict[str, Any]) -> dict[str, Any]:
-        back = {new: old for old, new in RENAMED[cls].items()}
+        back = {new: old for old, new in cls.RENAMED.items()}
         return {back.get(k, k): v for k, v in section.items()}
 
     return _rename_sections(data, earlier)
@@ -405,7 +445,7 @@ def _rename_sections(data: dict[str, Any], rename: Callable[[type, dict[str, Any
     hints = typing.get_type_hints(TrainConfig)
     out = dict(data)
     for f in dataclasses.fields(TrainConfig):
-        if isinstance(out.get(f.name), dict) and hints[f.name] in RENAMED:
+        if isinstance(out.get(f.name), dict) and getattr(hints[f.name], "RENAMED", None):
             out[f.name] = rename(hints[f.name], out[f.name])
     return out
 
@@ -430,12 +470,19 @@ def from_dict(cls: type[T], data: dict[str, Any] | str | None, _where: str = "")
     kwargs = {k: _convert(hints[k], v, f"{_where}.{k}" if _where else k) for k, v in data.items()}
     if preset:
         key, make = preset
-        return make(kwargs.pop(key, None), **kwargs)
+        return _in_range(make(kwargs.pop(key, None), **kwargs), _where)
     required = [f.name for f in fields if f.name not in kwargs and f.default is dataclasses.MISSING
                 and f.default_factory is dataclasses.MISSING]
     if required:
         raise ValueError(f"{cls.__name__}{' at ' + _where if _where else ''}: missing key(s) {required}")
-    return cls(**kwargs)
+    return _in_range(cls(**kwargs), _where)
+
+
+def _in_range(obj: T, where: str) -> T:
+    problems = range_problems(obj, where)
+    if problems:
+        raise ValueError("; ".join(problems))
+    return obj
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

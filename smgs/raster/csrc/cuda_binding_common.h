@@ -89,7 +89,9 @@ Binned bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor
   if (reg_values.numel()) check_f32(reg_values, "reg_values");
   const at::Device dev = means2d.device();
   const int64_t N = means2d.size(0);
-  TORCH_CHECK(N < INT32_MAX, "smgs cuda backend: fewer than 2^31 splats");
+  // prepare and emit index the [N, 4] boxes with 32-bit 4·i (smgs/raster/cuda.py MAX_SPLATS)
+  TORCH_CHECK(N <= (int64_t(1) << 29), "smgs cuda backend: ", N, " splats; the binning takes at most 2^29 per render "
+              "(32-bit box indexing): prune the model, or render with backend='cpu'");
   TORCH_CHECK(width > 0 && height > 0 && width * height < INT32_MAX, "smgs cuda backend: bad image size");
   const int W = int(width), H = int(height);
   const int nch = int(colors.size(1));
@@ -116,7 +118,8 @@ Binned bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor
   check(scan_tiles(tmp.data_ptr(), size_t(tmp.numel()), nt.data_ptr<int64_t>(), offs.data_ptr<int64_t>(), int(N), st),
         "prefix sum");
   const int64_t count = N ? offs[N - 1].item<int64_t>() : 0;  // synchronises: sizes the tile list
-  TORCH_CHECK(count < INT32_MAX, "smgs cuda backend: more than 2^31 (tile, splat) pairs");
+  TORCH_CHECK(count < INT32_MAX, "smgs cuda backend: ", count, " (tile, splat) pairs; the tile list holds fewer "
+              "than 2^31 (32-bit positions): render at a smaller image size, or with fewer or smaller splats");
   at::Tensor keys = at::empty({count}, i64), vals = at::empty({count}, i32);
   check(emit_keys(box.data_ptr<int32_t>(), nt.data_ptr<int64_t>(), offs.data_ptr<int64_t>(),
                   reinterpret_cast<const uint32_t*>(dbits.data_ptr<int32_t>()), int(N), tiles_x,

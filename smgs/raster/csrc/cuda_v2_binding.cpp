@@ -222,7 +222,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("width"), py::arg("height"), py::arg("use_gef"), py::arg("use_softmax"), py::arg("k_max"),
         py::arg("solved"), py::arg("window"), py::arg("patch"), py::arg("scratch_budget_bytes"));
   m.def("max_window", []() { return pixel::kMaxWindow; }, "the longest re-sorting window of the kernels");
-  m.def("layout", []() { return std::vector<int>{P_MX, P_MY, P_CA, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL}; },
+  m.def("layout", []() {
+    using namespace smgs;   // packed_row.h
+    return std::vector<int>{P_MX, P_MY, P_CA, P_CC, P_O, P_D, P_AL, P_BE, P_GA, P_COL};
+  },
         "columns of the packed rows: mx, my, conic a, conic c, opacity, depth, alpha, beta, gamma, first colour");
   m.def("constants", []() {
     std::vector<double> v(10);

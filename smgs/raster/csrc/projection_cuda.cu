@@ -19,16 +19,41 @@ __device__ __forceinline__ bool culled(const float* radii, int i) {
   return radii[2 * i] == 0.f && radii[2 * i + 1] == 0.f;
 }
 
+__device__ bool finite_row(const float* p, int64_t i, int w, bool pos_inf_ok = false) {
+  bool ok = true;
+  for (int k = 0; k < w; ++k) {
+    const float v = p[i * w + k];
+    ok &= pos_inf_ok ? !(isnan(v) || v == -INFINITY) : isfinite(v);
+  }
+  return ok;
+}
+
+// Row i passes the renderer's input checks (ProjChecks); the background by the first threads.
+__device__ bool checked(const ProjIn& in, int64_t i) {
+  if (!in.chk.bad) return true;
+  if (i < in.chk.nbg && !isfinite(in.chk.bg[i])) atomicOr(in.chk.bad, 1);
+  if (i >= in.n) return false;
+  bool ok = finite_row(in.means3d, i, 3) && finite_row(in.quats, i, 4) && finite_row(in.scales, i, 3);
+  for (int k = 0; k < 3; ++k) ok &= in.scales[3 * i + k] >= 0.f;
+  if (in.sh) ok &= finite_row(in.sh, i, in.nbases * in.nch);
+  for (int c = 0; c < in.chk.nrows; ++c)
+    ok &= finite_row(in.chk.rows[c].p, i, in.chk.rows[c].width, in.chk.rows[c].pos_inf_ok);
+  if (!ok) atomicOr(in.chk.bad, 1);
+  return ok;
+}
+
 // DEG: the SH degree as a compile-time constant (-1: no colours), so that the basis arrays unroll
 // into registers.
 template <int DEG>
 __global__ void __launch_bounds__(kThreads) project_fwd_kernel(ProjIn in, float* means2d, float* conics,
                                                                float* depths, float* radii, float* colors) {
   const int i = blockIdx.x * blockDim.x + threadIdx.x;
+  const bool ok = checked(in, i);   // a row that fails the checks is culled: nothing of it renders
   if (i >= in.n) return;
   float m2[2], con[3], dep, rad[2];
-  const bool keep = proj::project_fwd(in.cam, in.means3d + 3 * int64_t(i), in.quats + 4 * int64_t(i),
-                                      in.scales + 3 * int64_t(i), in.near, in.eps2d, in.ext, m2, con, &dep, rad);
+  const bool keep = ok && proj::project_fwd(in.cam, in.means3d + 3 * int64_t(i), in.quats + 4 * int64_t(i),
+                                            in.scales + 3 * int64_t(i), in.near, in.eps2d, in.ext, m2, con, &dep,
+                                            rad);
   means2d[2 * int64_t(i)] = keep ? m2[0] : 0.f;
   means2d[2 * int64_t(i) + 1] = keep ? m2[1] : 0.f;
   for (int k = 0; k < 3; ++k) conics[3 * int64_t(i) + k] = keep ? con[k] : 0.f;
@@ -100,7 +125,8 @@ template <int DEG>
 struct Fwd {
   static int run(const ProjIn& in, float* means2d, float* conics, float* depths, float* radii, float* colors,
                  cudaStream_t st) {
-    project_fwd_kernel<DEG><<<blocks_for(in.n), kThreads, 0, st>>>(in, means2d, conics, depths, radii, colors);
+    const int threads = in.chk.bad ? (in.n > in.chk.nbg ? in.n : in.chk.nbg) : in.n;   // the background's too
+    project_fwd_kernel<DEG><<<blocks_for(threads), kThreads, 0, st>>>(in, means2d, conics, depths, radii, colors);
     return int(cudaGetLastError());
   }
 };
@@ -118,7 +144,7 @@ struct Bwd {
 
 int project_forward(const ProjIn& in, float* means2d, float* conics, float* depths, float* radii, float* colors,
                     void* stream) {
-  if (in.n == 0) return 0;
+  if (in.n == 0 && (!in.chk.bad || in.chk.nbg == 0)) return 0;
   return by_degree<Fwd>(in, means2d, conics, depths, radii, colors, static_cast<cudaStream_t>(stream));
 }
 

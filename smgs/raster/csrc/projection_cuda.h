@@ -12,6 +12,23 @@
 namespace smgs {
 namespace cuda {
 
+// The renderer's input checks done by the forward kernel itself (the lean glue; null `bad`: none):
+// a Gaussian whose means3d, quats, scales, SH or any row of `rows` holds NaN or ±inf (+inf allowed
+// where pos_inf_ok: γ), or a negative scale, is culled and sets `bad`; so is a background [nbg]
+// holding one. The host reads `bad` after the render and names the input (smgs/raster/checks.py).
+constexpr int kMaxRowChecks = 6;
+struct RowCheck {
+  const float* p;  // [N, width]
+  int width;
+  bool pos_inf_ok;
+};
+struct ProjChecks {
+  RowCheck rows[kMaxRowChecks];
+  int nrows, nbg;
+  const float* bg;
+  int* bad;  // [1], zeroed by the binding
+};
+
 struct ProjIn {
   const float *means3d, *quats, *scales;  // [N,3] [N,4] [N,3]
   const float* sh;                        // [N,K,C] SH coefficients, or null (colours are not computed)
@@ -20,6 +37,7 @@ struct ProjIn {
   float near, eps2d, ext;                 // near plane, 2D dilation, sigma extent of the radii
   proj::Cam cam;
   float center[3];                        // camera centre in world coordinates (the SH directions)
+  ProjChecks chk;                         // the forward's input checks (chk.bad null: none)
 };
 
 // Every Gaussian's row, no compaction: means2d [N,2], conics [N,3], depths [N], radii [N,2] and

@@ -73,23 +73,52 @@ ProjIn make_in(const at::Tensor& means3d, const at::Tensor& quats, const at::Ten
   return in;
 }
 
+// The input checks the forward kernel makes (ProjChecks): the per-Gaussian `rows` ([N] or [N, w],
+// +inf allowed where pos_inf_ok), the background, and `bad`, zeroed here on the stream.
+void add_checks(ProjIn& in, const std::vector<at::Tensor>& rows, const std::vector<int64_t>& pos_inf_ok,
+                const at::Tensor& background, at::Tensor& bad) {
+  TORCH_CHECK(rows.size() <= size_t(kMaxRowChecks) && pos_inf_ok.size() == rows.size(),
+              "smgs cuda projection: at most ", kMaxRowChecks, " checked inputs, one pos_inf_ok each");
+  for (size_t c = 0; c < rows.size(); ++c) {
+    const at::Tensor& t = rows[c];
+    const int64_t w = t.dim() == 1 ? 1 : t.size(1);
+    check_rows(t.dim() == 1 ? t.view({-1, 1}) : t, in.n, w, "a checked input");
+    in.chk.rows[c] = RowCheck{t.data_ptr<float>(), int(w), pos_inf_ok[c] != 0};
+  }
+  in.chk.nrows = int(rows.size());
+  if (background.numel()) {
+    TORCH_CHECK(background.is_cuda() && background.scalar_type() == at::kFloat && background.is_contiguous(),
+                "smgs cuda projection: background must be a contiguous float32 CUDA tensor");
+    in.chk.bg = background.data_ptr<float>();
+    in.chk.nbg = int(background.numel());
+  }
+  bad.zero_();
+  in.chk.bad = bad.data_ptr<int32_t>();
+}
+
 }  // namespace
 
-// Returns [means2d [N,2], conics [N,3], depths [N], radii [N,2], colours [N,C] (empty without sh)].
+// Returns [means2d [N,2], conics [N,3], depths [N], radii [N,2], colours [N,C], bad [1]].
+// colours is empty without sh; bad (int32, non-zero where an input failed the kernel's checks, whose
+// rows are culled) is empty without check_inputs.
 std::vector<at::Tensor> project_forward_torch(at::Tensor means3d, at::Tensor quats, at::Tensor scales, at::Tensor sh,
                                               std::vector<double> camera, double near_plane, double eps2d,
-                                              double sigma_extent, int64_t sh_degree, bool clamp) {
-  const ProjIn in = make_in(means3d, quats, scales, sh, camera, near_plane, eps2d, sigma_extent, sh_degree, clamp);
+                                              double sigma_extent, int64_t sh_degree, bool clamp, bool check_inputs,
+                                              std::vector<at::Tensor> checked_rows,
+                                              std::vector<int64_t> checked_pos_inf_ok, at::Tensor background) {
+  ProjIn in = make_in(means3d, quats, scales, sh, camera, near_plane, eps2d, sigma_extent, sh_degree, clamp);
   const c10::cuda::CUDAGuard guard(means3d.device());
   const int64_t n = in.n;
   auto f32 = means3d.options();
   at::Tensor means2d = at::empty({n, 2}, f32), conics = at::empty({n, 3}, f32), depths = at::empty({n}, f32),
-             radii = at::empty({n, 2}, f32), colors = at::empty({in.sh ? n : 0, in.sh ? in.nch : 0}, f32);
+             radii = at::empty({n, 2}, f32), colors = at::empty({in.sh ? n : 0, in.sh ? in.nch : 0}, f32),
+             bad = at::empty({check_inputs ? 1 : 0}, means3d.options().dtype(at::kInt));
+  if (check_inputs) add_checks(in, checked_rows, checked_pos_inf_ok, background, bad);
   check(project_forward(in, means2d.data_ptr<float>(), conics.data_ptr<float>(), depths.data_ptr<float>(),
                         radii.data_ptr<float>(), in.sh ? colors.data_ptr<float>() : nullptr,
                         c10::cuda::getCurrentCUDAStream().stream()),
         "forward");
-  return {means2d, conics, depths, radii, colors};
+  return {means2d, conics, depths, radii, colors, bad};
 }
 
 // Returns [dL/dmeans3d [N,3], dL/dquats [N,4], dL/dscales [N,3], dL/dsh [N,K,C] (empty without sh)].
@@ -125,7 +154,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   namespace py = pybind11;
   m.def("forward", &smgs::cuda::project_forward_torch, "EWA projection and SH colours, every row (culled: zeros)",
         py::arg("means3d"), py::arg("quats"), py::arg("scales"), py::arg("sh"), py::arg("camera"),
-        py::arg("near_plane"), py::arg("eps2d"), py::arg("sigma_extent"), py::arg("sh_degree"), py::arg("clamp"));
+        py::arg("near_plane"), py::arg("eps2d"), py::arg("sigma_extent"), py::arg("sh_degree"), py::arg("clamp"),
+        py::arg("check_inputs"), py::arg("checked_rows"), py::arg("checked_pos_inf_ok"), py::arg("background"));
   m.def("backward", &smgs::cuda::project_backward_torch, "gradients w.r.t. means3d, quats, scales and sh",
         py::arg("means3d"), py::arg("quats"), py::arg("scales"), py::arg("sh"), py::arg("camera"),
         py::arg("near_plane"), py::arg("eps2d"), py::arg("sh_degree"), py::arg("clamp"), py::arg("radii"),

@@ -169,10 +169,17 @@ SMGS_HD inline Absorb<V> splat_absorb(V q, float o, float alpha) {
 // (sort="per_pixel", StopThePop): t* = b·d / dᵀQd with c = (Qxx, Qxy, Qxz, Qyy, Qyz, Qzz, bx, by, bz)
 // from smgs/raster/ray_depth.py (Q the splat's inverse covariance up to scale, b = Qμ); `fallback`
 // (the centre depth) where dᵀQd vanishes. The twin of peak_depth in smgs/raster/reference.py.
+// Written with mul_rn/add_rn in the order the plain expression evaluates: the key orders each
+// pixel's splats, so a kernel built with FMA contraction (cuda_pixel.cu) must key them as the CPU
+// window does, bit for bit (n_contrib and the leaders are compared exactly).
 SMGS_HD inline float peak_depth(float u, float v, const float* c, float fallback) {
-  const float num = c[6] * u + c[7] * v + c[8];
-  const float den = c[0] * u * u + c[3] * v * v + c[5] + 2.f * (c[1] * u * v + c[2] * u + c[4] * v);
-  return den > 1e-12f * (u * u + v * v + 1.f) ? num / den : fallback;
+  // c6·u + c7·v + c8
+  const float num = add_rn(add_rn(mul_rn(c[6], u), mul_rn(c[7], v)), c[8]);
+  // c0·u·u + c3·v·v + c5 + 2·(c1·u·v + c2·u + c4·v)
+  const float quad = add_rn(add_rn(mul_rn(mul_rn(c[0], u), u), mul_rn(mul_rn(c[3], v), v)), c[5]);
+  const float cross = add_rn(add_rn(mul_rn(mul_rn(c[1], u), v), mul_rn(c[2], u)), mul_rn(c[4], v));
+  const float den = add_rn(quad, mul_rn(2.f, cross));
+  return den > mul_rn(1e-12f, add_rn(add_rn(mul_rn(u, u), mul_rn(v, v)), 1.f)) ? num / den : fallback;
 }
 
 // Adjoint of splat_quad + splat_absorb: from dL/da and dL/dp (p = -q) to the splat's parameters.

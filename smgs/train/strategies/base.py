@@ -54,6 +54,10 @@ class Strategy(Protocol):
         """After backward and the optimiser step of ``iteration``; ``lr_means`` is its position
         learning rate. Returns what changed (None when the strategy is idle)."""
 
+    def reset_steps(self, steps: int) -> list[int]:
+        """The 1-based iterations of a ``steps`` run after which every opacity is reset (an
+        evaluation there would score the reset, not the method)."""
+
     def state_dict(self) -> dict: ...
 
     def load_state_dict(self, state: dict) -> None: ...

@@ -4,7 +4,7 @@ optional hard cap on the count.
 Per step (1-based ``iteration`` < refine_stop): accumulate the norm of each visible Gaussian's
 screen-space mean gradient (in NDC units, i.e. the pixel gradient × (W/2, H/2), as 3DGS and
 gsplat measure it) and its largest screen radius. Every ``refine_every`` steps after
-``refine_start``: clone small Gaussians and split large ones whose mean gradient ≥ grow_grad2d,
+``refine_start``: clone small Gaussians and split large ones whose mean gradient ≥ grad_threshold,
 then prune the transparent ones (opacity < 0.005) and, after the first opacity reset, the big ones
 (largest world scale > size_prune × extent; screen radius > ``prune_screen_px`` only where that is
 set: 3DGS as released never prunes by screen size, ``DensifyConfig``). Opacity reset every
@@ -76,7 +76,7 @@ class DefaultStrategy:
         c = self.cfg
         if not c.enabled:
             return ["densification: off (fixed count)"]
-        return [f"densification: budget {c.budget_kind} (grad {c.grow_grad2d:g}{', cap ' + str(c.cap) if c.cap else ''}), "
+        return [f"densification: budget {c.budget_kind} (grad {c.grad_threshold:g}{', cap ' + str(c.cap) if c.cap else ''}), "
                 f"steps {c.refine_start}-{c.refine_stop} every {c.refine_every}",
                 "opacity reset: off; size pruning: off (only after a reset)" if c.reset_every is None
                 else f"opacity reset every {c.reset_every}; size pruning {self.size_prune:g} x extent"
@@ -143,10 +143,18 @@ class DefaultStrategy:
         if iteration > c.refine_start and iteration % c.refine_every == 0:
             after_reset = c.reset_every is not None and iteration > c.reset_every
             ev = self.densify_and_prune(g, opt, prune_big=after_reset)
-        if c.reset_every is not None and iteration % c.reset_every == 0:
+        if self._resets(iteration):
             self.reset_opacity(g, opt)
             ev.reset = True
         return ev
+
+    def _resets(self, iteration: int) -> bool:
+        """Whether the step of this 1-based iteration (an active one) ends in an opacity reset."""
+        return self.cfg.reset_every is not None and iteration % self.cfg.reset_every == 0
+
+    def reset_steps(self, steps: int) -> list[int]:
+        """The 1-based iterations of a ``steps`` run that end in an opacity reset (``step``)."""
+        return [i for i in range(1, steps + 1) if self.active(i) and self._resets(i)]
 
     # -- operations --------------------------------------------------------------------------
     @torch.no_grad()
@@ -158,7 +166,7 @@ class DefaultStrategy:
         grads[self.count == 0] = 0.0
         max_scale = g.scales.max(dim=1).values
         small = max_scale <= c.percent_dense * self.extent
-        cand = grads >= c.grow_grad2d
+        cand = grads >= c.grad_threshold
         capped = 0
         if c.cap is not None:
             room = max(c.cap - n, 0)

@@ -132,6 +132,9 @@ class MCMCStrategy:
     def step_pre_backward(self, iteration: int, g: Gaussians, out) -> None:
         return None   # MCMC reads no screen-space statistics
 
+    def reset_steps(self, steps: int) -> list[int]:
+        return []   # MCMC never resets the opacities
+
     def regularizer(self, iteration: int, g: Gaussians) -> torch.Tensor | None:
         c = self.cfg
         if len(g) == 0:   # a mean over no Gaussian is NaN; with none left there is nothing to regularise
