@@ -54,8 +54,10 @@ def build(overrides: list[str], device: str = "cpu"):
     if len(payloads) != 1:
         raise SystemExit(f"train_step: the overrides make {len(payloads)} cells; name one method, scene and budget")
     cfg = payloads[0]["config"]
-    method_cfg, run = cell_settings(cfg).for_method()
-    return create_method(cfg["method"]["name"], load_scene_for(cfg), method_cfg, device=device, run=run)
+    name, scene, made = cfg["method"]["name"], load_scene_for(cfg), cell_settings(cfg).for_method()
+    if isinstance(made, tuple):   # a tree from before the resolved settings (e.g. 698e83b): (config, run)
+        return create_method(name, scene, made[0], device=device, run=made[1])
+    return create_method(name, scene, device=device, resolved=made)
 
 
 class Session:
