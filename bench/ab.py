@@ -38,9 +38,10 @@ def worker(tree: str) -> None:
     os.dup2(2, 1)
     sys.stdout = sys.stderr
     sys.path.insert(0, tree)
+    # the tree's smgs, imported before bench/raster.py puts ours on the path, and before torch: it sets
+    # OpenMP's wait policy (smgs/__init__.py), so each tree is timed as smgs runs it
+    import smgs  # noqa: F401
     import torch
-
-    import smgs  # noqa: F401 - the tree's smgs, imported before bench/raster.py puts ours on the path
     sys.path.insert(0, str(HERE.parent))
     import time
 

@@ -16,7 +16,11 @@ With ``--before TREE`` each tree trains the cell in its own worker process (the 
 keyed by the sources, so the trees share it) and the workers take turns by chunks of ``--chunk`` steps, which goes
 first flipping every round: both see the same load on a shared machine (bench/ab.py says why). Both
 start from one state (the after tree trains the first ``--start`` steps, or reads ``--checkpoint``).
-The first step of each chunk is untimed (it absorbs the other tree's spinning OpenMP threads). At the
+The first step of each chunk is untimed (it warms the tree's caches after the other's chunk). Each
+process imports its tree's smgs before torch, as every smgs entry point does, so that OpenMP's wait
+policy is the one ``smgs run`` trains with (smgs/__init__.py: passive; torch imported first left
+OpenMP's threads spinning for milliseconds after each parallel region, on the cores the renderer's
+own threads need, which took ~7 ms of a 25 ms step on fern on a quiet 2-core host). At the
 end both render the first test view: the largest difference of the two images (0 where the change
 keeps the arithmetic; else the float rounding of the changed kernels, grown over the steps).
 """
@@ -66,6 +70,7 @@ class Session:
     def __init__(self, overrides: list[str], start: int, checkpoint: str | None = None) -> None:
         """The cell's method after ``start`` steps: trained here, or read from ``checkpoint`` where that
         file is there (else written there after training)."""
+        import smgs  # noqa: F401 - the tree's smgs before torch: OpenMP's wait policy as smgs run has it
         import torch
 
         self.m = build(overrides)
@@ -274,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.before is not None:
         ab(args.before, args.after, args.overrides, args.start, args.chunks, args.chunk, args.checkpoint)
         return 0
+    import smgs  # noqa: F401 - before torch (Session says why)
     import torch
 
     from smgs.env import cpu_model
