@@ -117,6 +117,32 @@ def test_two_parts_and_one_tensor_give_the_same_bits(degree):
     assert torch.equal(g1[3], torch.cat([g2[3], g2[4]], 1))
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("clamp", [True, False])
+def test_rgb_colours_side_by_side_give_the_bits_of_a_channel_at_a_time(degree, clamp):
+    """The projection sums the three channels' coefficients side by side (``sh_colour_parts<3>``); the
+    colour stage alone (``sh_forward`` / ``sh_backward``, the CUDA kernels' twin) a channel at a time.
+    The same operations per channel: the same colours and SH gradients to the bit, and the same
+    gradient of the means where the projection's own part of it is zero."""
+    ext = projection._JIT.module()
+    means, quats, scales, sh0, rest = _inputs(2500, degree, seed=11 + degree)
+    cam = _camera()
+    view = host_view(cam, torch.float32, center=True)
+    center = view[22:].tolist()
+    ids, *_, colours = ext.forward(means, quats, scales, view, 0.01, 0.3, 3.0, sh0, rest, degree, clamp)
+    assert 500 < ids.numel() < 2500
+    one = torch.cat([sh0, rest], 1)[ids].contiguous()
+    kept = means[ids].contiguous()
+    assert torch.equal(colours, ext.sh_forward(kept, one, center, degree, clamp))
+    g_col = torch.randn(colours.shape, generator=torch.Generator().manual_seed(3))
+    none = torch.empty(0)
+    g_means, _, _, g_sh0, g_rest = ext.backward(means, quats, scales, view, 0.01, 0.3, ids, none, none, none,
+                                                sh0, rest, degree, clamp, g_col)
+    gm_alone, gsh_alone = ext.sh_backward(kept, one, center, degree, clamp, g_col)
+    assert torch.equal(torch.cat([g_sh0, g_rest], 1)[ids], gsh_alone)
+    assert torch.equal(g_means[ids], gm_alone)
+
+
 def test_unused_outputs_and_no_colour_gradient():
     """Gradients the loss does not reach are not made (the kernel reads them as zero): a loss of the
     colours alone, or of the means alone, gives what the reference gives for it."""

@@ -183,7 +183,10 @@ std::vector<at::Tensor> forward(const at::Tensor& means3d_, const at::Tensor& qu
         OD[j] = in[5];
         OR[2 * j] = in[6];
         OR[2 * j + 1] = in[7];
-        if (OK)
+        if (OK && C == 3)   // RGB: the three channels' sums side by side (the same bits)
+          smgs::proj::sh_colour_parts<3>(sh.degree, SH0 + i * sh.s0, SHR + i * sh.sr, 3, M3 + 3 * i, sh.center,
+                                         sh.clamp, OK + j * C);
+        else if (OK)
           smgs::proj::sh_colour_parts(sh.degree, SH0 + i * sh.s0, SHR + i * sh.sr, int(C), M3 + 3 * i, sh.center,
                                       sh.clamp, OK + j * C);
         ++j;
@@ -257,7 +260,10 @@ std::vector<at::Tensor> backward(const at::Tensor& means3d_, const at::Tensor& q
       zero_rows(j == 0 ? 0 : I[j - 1] + 1, i);   // the culled rows before this one
       smgs::proj::project_bwd(cam, M3 + 3 * i, Q + 4 * i, S + 3 * i, near, eps, GM ? GM + 2 * j : kZero,
                               GC ? GC + 3 * j : kZero, GD ? GD[j] : 0.f, OM + 3 * i, OQ + 4 * i, OS + 3 * i);
-      if (GK)
+      if (GK && C == 3)
+        smgs::proj::sh_colour_parts_bwd<3>(sh.degree, int(sh.K), SH0 + i * s0, SHR + i * sr, 3, M3 + 3 * i,
+                                           sh.center, sh.clamp, GK + j * C, OS0 + i * s0, OSR + i * sr, OM + 3 * i);
+      else if (GK)
         smgs::proj::sh_colour_parts_bwd(sh.degree, int(sh.K), SH0 + i * s0, SHR + i * sr, int(C), M3 + 3 * i,
                                         sh.center, sh.clamp, GK + j * C, OS0 + i * s0, OSR + i * sr, OM + 3 * i);
       else

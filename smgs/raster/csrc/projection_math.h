@@ -252,31 +252,47 @@ SMGS_HD inline ShDir sh_dir(const float* m, const float* center) {
   return o;
 }
 
+// colour[c] = Σ_k b[k]·sh[k, c] + 0.5 for the G channels c0 .. c0 + G − 1 (each summed k = 0, 1, ...:
+// G independent chains side by side, the same operations per channel whatever G).
+template <int G>
+SMGS_HD inline void sh_sum(const float* b, int nb, const float* sh0, const float* rest, int nch, int c0, float* v) {
+  for (int g = 0; g < G; ++g) v[g] = b[0] * sh0[c0 + g];
+  for (int k = 1; k < nb; ++k)
+    for (int g = 0; g < G; ++g) v[g] = v[g] + b[k] * rest[(k - 1) * nch + c0 + g];
+  for (int g = 0; g < G; ++g) v[g] = v[g] + 0.5f;
+}
+
 // colour[c] = Σ_k b[k]·sh[k, c] + 0.5, clamped at 0 where `clamp`. The coefficients come in two parts,
 // as the trainer keeps them (3DGS's features_dc / features_rest): sh0 [C] is coefficient 0 and rest
 // [K - 1, C] (row-major) the others, K >= the degree's bases; read in place, nothing concatenated.
+// NCH: the channel count where known at compile time (the CPU projection's 3), whose chains of 16
+// dependent additions then run side by side (one after another they were most of the colour's time);
+// 0: `nch` at run time, a channel at a time. The same bits either way.
+template <int NCH = 0>
 SMGS_HD inline void sh_colour_parts(int degree, const float* sh0, const float* rest, int nch, const float* m,
                                     const float* center, bool clamp, float* colour) {
   const ShDir dir = sh_dir(m, center);
   float b[kMaxShBases];
   sh_basis(degree, dir.d[0], dir.d[1], dir.d[2], b);
   const int nb = (degree + 1) * (degree + 1);
-  for (int c = 0; c < nch; ++c) {
-    float v = b[0] * sh0[c];
-    for (int k = 1; k < nb; ++k) v = v + b[k] * rest[(k - 1) * nch + c];
-    v = v + 0.5f;
-    colour[c] = clamp ? (v < 0.f ? 0.f : v) : v;   // clamp_min(0) (NaN stays NaN)
+  constexpr int G = NCH > 0 ? NCH : 1;
+  for (int c0 = 0; c0 < (NCH > 0 ? NCH : nch); c0 += G) {
+    float v[G];
+    sh_sum<G>(b, nb, sh0, rest, nch, c0, v);
+    for (int g = 0; g < G; ++g) colour[c0 + g] = clamp ? (v[g] < 0.f ? 0.f : v[g]) : v[g];   // clamp_min(0) (NaN stays NaN)
   }
 }
 
 // sh_colour_parts of one [K, C] row-major block sh (coefficient 0 first).
+template <int NCH = 0>
 SMGS_HD inline void sh_colour(int degree, const float* sh, int nch, const float* m, const float* center, bool clamp,
                               float* colour) {
-  sh_colour_parts(degree, sh, sh + nch, nch, m, center, clamp, colour);
+  sh_colour_parts<NCH>(degree, sh, sh + nch, nch, m, center, clamp, colour);
 }
 
 // Adjoint of sh_colour_parts: from dL/dcolour [C] to dL/dsh0 [C] and dL/drest [nbases - 1, C] (written,
-// zero beyond the degree's bases) and dL/dm [3] (added to g_means).
+// zero beyond the degree's bases) and dL/dm [3] (added to g_means). NCH as sh_colour_parts'.
+template <int NCH = 0>
 SMGS_HD inline void sh_colour_parts_bwd(int degree, int nbases, const float* sh0, const float* rest, int nch,
                                         const float* m, const float* center, bool clamp, const float* g_colour,
                                         float* g_sh0, float* g_rest, float* g_means) {
@@ -284,22 +300,27 @@ SMGS_HD inline void sh_colour_parts_bwd(int degree, int nbases, const float* sh0
   float b[kMaxShBases];
   sh_basis(degree, dir.d[0], dir.d[1], dir.d[2], b);
   const int nb = (degree + 1) * (degree + 1);
-  float w[kMaxShBases] = {};   // Σ_c dL/dcolour[c]·sh[k, c]: the gradient of the basis values
-  for (int c = 0; c < nch; ++c) {
-    float gc = g_colour[c];
+  float w[kMaxShBases] = {};   // Σ_c dL/dcolour[c]·sh[k, c] (c = 0, 1, ... in order): the basis values' gradient
+  constexpr int G = NCH > 0 ? NCH : 1;
+  for (int c0 = 0; c0 < (NCH > 0 ? NCH : nch); c0 += G) {
+    float gc[G];
+    for (int g = 0; g < G; ++g) gc[g] = g_colour[c0 + g];
     if (clamp) {   // clamp_min(0) passes at >= (torch's mask)
-      float v = b[0] * sh0[c];
-      for (int k = 1; k < nb; ++k) v = v + b[k] * rest[(k - 1) * nch + c];
-      v = v + 0.5f;
-      gc = v >= 0.f ? gc : 0.f;
+      float v[G];
+      sh_sum<G>(b, nb, sh0, rest, nch, c0, v);
+      for (int g = 0; g < G; ++g) gc[g] = v[g] >= 0.f ? gc[g] : 0.f;
     }
-    g_sh0[c] = b[0] * gc;
-    w[0] = w[0] + gc * sh0[c];
-    for (int k = 1; k < nb; ++k) {
-      g_rest[(k - 1) * nch + c] = b[k] * gc;
-      w[k] = w[k] + gc * rest[(k - 1) * nch + c];
+    for (int g = 0; g < G; ++g) {
+      g_sh0[c0 + g] = b[0] * gc[g];
+      w[0] = w[0] + gc[g] * sh0[c0 + g];
     }
-    for (int k = nb; k < nbases; ++k) g_rest[(k - 1) * nch + c] = 0.f;
+    for (int k = 1; k < nb; ++k)
+      for (int g = 0; g < G; ++g) {
+        g_rest[(k - 1) * nch + c0 + g] = b[k] * gc[g];
+        w[k] = w[k] + gc[g] * rest[(k - 1) * nch + c0 + g];
+      }
+    for (int k = nb; k < nbases; ++k)
+      for (int g = 0; g < G; ++g) g_rest[(k - 1) * nch + c0 + g] = 0.f;
   }
   if (degree < 1) return;
   float gd[3];
@@ -314,10 +335,11 @@ SMGS_HD inline void sh_colour_parts_bwd(int degree, int nbases, const float* sh0
 }
 
 // sh_colour_parts_bwd of one [nbases, C] row-major block (sh and g_sh, coefficient 0 first).
+template <int NCH = 0>
 SMGS_HD inline void sh_colour_bwd(int degree, int nbases, const float* sh, int nch, const float* m,
                                   const float* center, bool clamp, const float* g_colour, float* g_sh,
                                   float* g_means) {
-  sh_colour_parts_bwd(degree, nbases, sh, sh + nch, nch, m, center, clamp, g_colour, g_sh, g_sh + nch, g_means);
+  sh_colour_parts_bwd<NCH>(degree, nbases, sh, sh + nch, nch, m, center, clamp, g_colour, g_sh, g_sh + nch, g_means);
 }
 
 }  // namespace proj
