@@ -97,3 +97,52 @@ def test_negative_scales_and_a_nan_camera_are_refused(backend):
     means[0, 0] = math.nan
     with pytest.raises(ValueError, match=r"means3d has 1 NaN or inf"):
         rasterize(means, quats, scales, opac, cols, _camera(), mode="3dgs", backend=backend)
+
+
+def _outcome(f):
+    try:
+        f()
+    except (ValueError, TypeError) as exc:
+        return type(exc).__name__, str(exc)
+    return None
+
+
+def _bad_tensors():
+    """Tensors the checks see in a training step, with bad values where each path could differ: NaN,
+    ±inf, −0 and negatives, at the ends of vectorised runs, in strided views (the trainer's
+    ``sh_rest[:, :k]``, whose rows are contiguous, and a transpose, whose rows are not)."""
+    g = torch.Generator().manual_seed(4)
+    rest = torch.randn(1001, 15, 3, generator=g)
+    rest[7, 2, 1], rest[1000, 14, 2], rest[500, 5, 0] = math.nan, math.inf, -0.0   # [500, 5] is past k = 4
+    opac = torch.rand(1000, generator=g)
+    opac[-1] = -math.inf
+    gamma = torch.rand(333, generator=g)
+    gamma[0], gamma[17] = math.inf, math.inf
+    scales = torch.rand(1000, 3, generator=g)
+    scales[999, 2], scales[0, 0], scales[5, 1] = -1e-30, -0.0, -2.0
+    return [("sh_rest", rest[:, :4]), ("sh_rest", rest[:, 5:]), ("rest", rest), ("opacities", opac),
+            ("opacities", opac[:-1]), ("gamma", gamma), ("means2d", torch.randn(64, 2, generator=g).t()),
+            ("scales", scales), ("scales", scales.abs()), ("empty", torch.empty(0, 3))]
+
+
+@pytest.mark.usefixtures("cpu_isa")
+def test_the_compiled_checks_decide_and_word_as_pytorch(monkeypatch):
+    """Float32 CPU tensors are counted in one compiled pass (checks._compiled_counts, once the compiled
+    projection is loaded) instead of PyTorch sums: the same inputs refused with the same words, the
+    exact counts (every SIMD path)."""
+    from smgs.raster import checks, projection
+
+    assert projection.fused_available()
+    tensors = _bad_tensors()
+    compiled = checks._compiled_counts(tensors, ("gamma",))
+    want = [(int((t.isnan() | (t == -math.inf)).sum()) if n == "gamma" else int((~t.isfinite()).sum()),
+             int((t < 0).sum())) for n, t in tensors]
+    assert compiled == want and want[0][0] == 1 and want[1][0] == 1 and want[5] == (0, 0)
+    assert checks.nonfinite_counts([t for _, t in tensors]) == [int((~t.isfinite()).sum()) for _, t in tensors]
+    calls = [lambda n=n, t=t: checks.finite([(n, t)], pos_inf_ok=("gamma",)) for n, t in tensors]
+    calls += [lambda n=n, t=t: checks.non_negative(n, t) for n, t in tensors if n == "scales"]
+    calls.append(lambda: checks.finite([(n, t) for n, t in tensors[3:]], pos_inf_ok=("gamma",)))
+    with_kernel = [_outcome(f) for f in calls]
+    monkeypatch.setattr(checks, "_compiled_counts", lambda *a: None)   # the PyTorch path
+    assert with_kernel == [_outcome(f) for f in calls]
+    assert sum(o is not None for o in with_kernel) == 6, with_kernel

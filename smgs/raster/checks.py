@@ -6,9 +6,11 @@ non-finite camera matrix, a non-floating or mixed dtype, and an image size that 
 integer up to ``MAX_IMAGE_SIDE`` are refused with a ValueError/TypeError that names the input and
 how many entries are bad. γ = +inf is valid (a hard depth decay; the stiff-case battery renders it).
 
-Cost: one stacked sum per call and device and one host synchronisation per device; a non-finite
-sum (NaN/inf anywhere, or an overflow of finite values) then counts the bad entries per tensor to
-decide and to name them. ``InputChecks`` with ``defer`` (the lean GPU glue) keeps the checks of GPU
+Cost: float32 CPU tensors (the CPU trainer's) are counted exactly in one compiled pass per call
+(the compiled projection's ``input_checks``, once this process has loaded it: a check never builds
+it). Otherwise one stacked sum per call and device and one host synchronisation per device; a
+non-finite sum (NaN/inf anywhere, or an overflow of finite values) then counts the bad entries per
+tensor to decide and to name them. Either way the same inputs are refused with the same words. ``InputChecks`` with ``defer`` (the lean GPU glue) keeps the checks of GPU
 tensors on the GPU (each tensor's min and max, or a flag the fused projection kernel raises) and
 reads them after the render, with the render's own wait; before the render, the splats' opacities
 are made NaN where an input is bad, so that no backend renders anything of them (a NaN splat's
@@ -63,10 +65,43 @@ def float_dtypes(named: list[tuple[str, torch.Tensor | None]]) -> None:
             raise TypeError(f"{name} is {t.dtype} but {first_name} is {first.dtype}; give every input one dtype")
 
 
+def _compiled_counts(present: list[tuple[str, torch.Tensor]], pos_inf_ok: tuple[str, ...]) -> list[tuple[int, int]] | None:
+    """(bad, negative) values of each tensor, counted by the compiled pass, where every tensor is float32
+    on the CPU and this process has loaded the compiled projection; else None (the PyTorch path)."""
+    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for _, t in present):
+        return None
+    from smgs.raster.projection import _JIT   # the projection imports nothing of the checks
+
+    ext = _JIT.loaded()
+    if ext is None:
+        return None
+    flat = ext.input_checks([t for _, t in present], [n in pos_inf_ok for n, _ in present])
+    return list(zip(flat[0::2], flat[1::2]))
+
+
+def nonfinite_counts(tensors: list[torch.Tensor]) -> list[int] | None:
+    """The NaN and ±inf values of each tensor, counted exactly in one compiled pass, where every tensor
+    is float32 on the CPU and the compiled projection is loaded here; else None (nothing computed)."""
+    counts = _compiled_counts([("", t.detach()) for t in tensors], ())
+    return None if counts is None else [bad for bad, _ in counts]
+
+
+def _refuse(name: str, t: torch.Tensor, count: int, pos_inf_ok: tuple[str, ...]) -> None:
+    what = "NaN or -inf" if name in pos_inf_ok else "NaN or inf"
+    raise NonFiniteInputError(f"{name} has {count} {what} value(s) of {t.numel()}; the renderer takes "
+                              "finite inputs (find where they became non-finite, e.g. a diverged optimiser)")
+
+
 def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = ()) -> None:
     """Refuse NaN/inf in the given tensors (+inf allowed in those named in ``pos_inf_ok``)."""
     present = [(n, t.detach()) for n, t in named if t is not None and t.numel()]
     if not present:
+        return
+    counts = _compiled_counts(present, pos_inf_ok)
+    if counts is not None:
+        for (name, t), (bad, _) in zip(present, counts):
+            if bad:
+                _refuse(name, t, bad, pos_inf_ok)
         return
     # One sum per tensor in its own dtype: NaN/inf propagate into it. A finite sum that overflows
     # only sends us to the exact per-element count below, which refuses nothing finite. (Summing in
@@ -81,14 +116,17 @@ def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, 
         bad = torch.isnan(t) | (t == -torch.inf) if name in pos_inf_ok else ~torch.isfinite(t)
         count = int(bad.sum())
         if count:
-            what = "NaN or -inf" if name in pos_inf_ok else "NaN or inf"
-            raise NonFiniteInputError(f"{name} has {count} {what} value(s) of {t.numel()}; the renderer takes "
-                             "finite inputs (find where they became non-finite, e.g. a diverged optimiser)")
+            _refuse(name, t, count, pos_inf_ok)
 
 
 def non_negative(name: str, t: torch.Tensor) -> None:
-    if t.numel() and bool((t.detach() < 0).any()):
-        raise ValueError(f"{name} has {int((t.detach() < 0).sum())} negative value(s); scales are activated "
+    if not t.numel():
+        return
+    t = t.detach()
+    counts = _compiled_counts([(name, t)], ())
+    negative = counts[0][1] if counts is not None else (int((t < 0).sum()) if bool((t < 0).any()) else 0)
+    if negative:
+        raise ValueError(f"{name} has {negative} negative value(s); scales are activated "
                          "(positive) standard deviations, e.g. exp(log_scales)")
 
 

@@ -202,6 +202,17 @@ class CpuExtension:
     def module(self):
         return self.jit().module()
 
+    def loaded(self):
+        """The module of the path in use where this process has loaded it already, else None: never
+        builds (for work that may use a kernel but must not cost a build, e.g. an input check)."""
+        try:
+            isa = select_isa()
+        except (ValueError, RuntimeError):
+            return None
+        with self._lock:
+            path = self._paths.get(isa)
+        return None if path is None else path.loaded()
+
 
 def cpu_extension(name: str, sources: list[Path], what: str, include: list[Path] | None = None) -> CpuExtension:
     """A compiled CPU extension of smgs (``_CFLAGS``, OpenMP where the compiler has it, one build

@@ -91,6 +91,10 @@ class JitExtension:
         """Why ``is_available()`` is False (None if it is available or was not tried yet)."""
         return self._error
 
+    def loaded(self) -> Any:
+        """The default module where this process has loaded it already, else None: never builds."""
+        return self._ext
+
     def module(self, t_min: float = K.T_MIN) -> Any:
         """The loaded module for this threshold (builds it if needed); raises if it cannot be built."""
         ext = self.load()

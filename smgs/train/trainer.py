@@ -20,7 +20,7 @@ from smgs.data.scene import Scene
 from smgs.device import as_device, check_backend, generator_state, restore_generator
 from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
-from smgs.raster.checks import NonFiniteInputError
+from smgs.raster.checks import NonFiniteInputError, nonfinite_counts
 from smgs.raster.kernel_clock import KernelClock
 from smgs.raster.ray_depth import check_sort
 from smgs.train.allocator import keep_freed_buffers
@@ -201,13 +201,18 @@ class Trainer:
         params = self.gaussians.params
         return [(n, params[n].detach()) for n in PARAM_NAMES if params[n].numel()]
 
-    def _finite_flag(self) -> torch.Tensor | None:
-        """A 0-dim bool on the device, false if a parameter may be non-finite (None without
-        Gaussians): one sum per group, NaN/inf propagate into it. A finite group whose sum
-        overflows is a false alarm, which ``check_finite``'s exact count clears."""
+    def _finite_flag(self) -> torch.Tensor | bool | None:
+        """False if a parameter may be non-finite (None without Gaussians). On the CPU, a host bool,
+        exact: every value counted in one compiled pass (``checks.nonfinite_counts``). Elsewhere a
+        0-dim bool on the device (read later, with the step's values): one sum per group, NaN/inf
+        propagate into it; a finite group whose sum overflows is a false alarm, which
+        ``check_finite``'s exact count clears."""
         tensors = [t for _, t in self._param_tensors()]
         if not tensors:   # no Gaussian left (a collapsed model): nothing can be non-finite
             return None
+        counts = nonfinite_counts(tensors)
+        if counts is not None:
+            return not any(counts)
         return torch.isfinite(torch.stack([t.sum() for t in tensors])).all()
 
     def check_finite(self, step: int, where: str = "") -> None:
@@ -318,13 +323,13 @@ class Trainer:
         read = [loss.detach().reshape(1).double(), parts.values.to(loss.device, torch.float64).reshape(-1)]
         if var is not None:
             read.append(var.detach().double().reshape(-1))
-        if flag is not None:
+        if isinstance(flag, torch.Tensor):   # a device flag, read with the values (else decided already)
             read.append(flag.double().reshape(1))
         values = torch.cat(read).tolist()
         if not math.isfinite(values[0]):
             self.check_finite(self.step_count, "before the step")
             raise NonFiniteError("loss", self.step_count, f"loss = {values[0]}")
-        if flag is not None and not values[-1]:
+        if flag is not None and not (values[-1] if isinstance(flag, torch.Tensor) else flag):
             self.check_finite(self.step_count, "after the optimiser step" + (
                 "" if every == 1 else f" (checked every {every} steps: it appeared at step "
                                       f"{max(self.step_count - every + 1, 0)} or later)"))
