@@ -7,10 +7,12 @@ the same steps of two source trees side by side.
 
 The cell is composed from the Hydra overrides as ``smgs run`` composes it (one method, dataset,
 scene, budget; ``--start`` steps are trained first, untimed: e.g. where SH degree 3 is active at the
-cpu preset). Then ``--steps`` steps with ``Trainer.profile`` on: each stage's wall time (render
-forward, loss, backward, optimiser, strategy) and, inside them, the compiled CPU kernels'
-(``smgs.raster.kernel_clock``: projection with the SH colours, compositing, loss, each way), so the
-split shows the time outside the compiled kernels: the forward's and the backward's glue.
+cpu preset; then ``--warmup`` more, untimed: the first step of a process loads the compiled kernels,
+~0.1 s that a split of 60 steps counted as 1.5 ms of the forward's glue). Then ``--steps`` steps with
+``Trainer.profile`` on: each stage's wall time (render forward, loss, backward, optimiser, strategy)
+and, inside them, the compiled CPU kernels' (``smgs.raster.kernel_clock``: projection with the SH
+colours, compositing, loss, each way), so the split shows the time outside the compiled kernels: the
+forward's and the backward's glue.
 
 With ``--before TREE`` each tree trains the cell in its own worker process (the extension cache is
 keyed by the sources, so the trees share it) and the workers take turns by chunks of ``--chunk`` steps, which goes
@@ -262,6 +264,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("overrides", nargs="*", help="Hydra overrides of the cell, as for smgs run")
     ap.add_argument("--start", type=int, default=0, help="steps trained first, untimed")
     ap.add_argument("--steps", type=int, default=50, help="timed steps (one tree)")
+    ap.add_argument("--warmup", type=int, default=1,
+                    help="steps after --start trained untimed before the split's timed ones (the first loads "
+                         "the compiled kernels: ~0.1 s, which counted as the forward's glue)")
     ap.add_argument("--before", type=Path, help="a source tree to compare against, alternated by chunks")
     ap.add_argument("--after", type=Path, default=ROOT, help="the other tree (default: this one)")
     ap.add_argument("--chunks", type=int, default=10)
@@ -287,10 +292,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     s = Session(args.overrides, args.start, args.checkpoint)
-    r = s.run(args.steps)
+    r = s.run(args.steps, untimed=args.warmup)
     from smgs.raster.cpu_build import isa_in_use
 
-    print(f"# {' '.join(args.overrides)}\n# steps {args.start}-{r['step']}, {r['gaussians']} Gaussians at the end, "
+    print(f"# {' '.join(args.overrides)}\n# steps {r['step'] - args.steps}-{r['step']}, {r['gaussians']} Gaussians at the end, "
           f"SH degree {r['sh_degree']}; {cpu_model()}, {isa_in_use()} path, {torch.get_num_threads()} threads; "
           f"load average {load()}\n")
     print(split_table(r))
