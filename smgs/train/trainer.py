@@ -28,8 +28,7 @@ from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
 from smgs.train.image_loss import PhotometricLoss, ray_variance
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategies import make_strategy
-from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
+from smgs.train.strategies import StrategyRun, start_strategy
 
 log = logging.getLogger(__name__)
 
@@ -102,10 +101,7 @@ class Trainer:
         for n in PARAM_NAMES:   # unused groups get no gradients at all
             if n not in self.optimizer.names:
                 self.gaussians.params[n].requires_grad_(False)
-        size_prune = cfg.densify.size_prune
-        if size_prune is None:
-            size_prune = SIZE_PRUNE_3DGS if cfg.mode == "3dgs" else SIZE_PRUNE_SOFTMAX_GS
-        self.strategy = make_strategy(cfg.densify, self.extent, size_prune, seed=cfg.seed, device=self.device)
+        self.strategy = start_strategy(cfg.densify, StrategyRun(self.extent, cfg.mode, int(cfg.seed), self.device))
         self.plan += self.strategy.describe()
         self.plan += self.strategy.initialize(self.gaussians, self.optimizer)
         self.reg_on = self.use_softmax and (cfg.loss.lambda_beta_var > 0 or cfg.loss.lambda_gamma_var > 0)
