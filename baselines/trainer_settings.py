@@ -14,7 +14,7 @@ SCHEDULE_KEYS = ("refine_start", "refine_stop", "refine_every", "reset_every")
 
 def train_config(config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
     """The TrainConfig dict of a run: the method's ``config`` (its own settings and the dataset's
-    overrides), then the run's step count, seed, backend and budget."""
+    overrides), then the run's step count, seed, renderer (backend and variants) and budget."""
     mc = merge_config(config, {})
     densify = current_keys(DensifyConfig, dict(mc.get("densify") or {}))   # its earlier key names as today's
     densify.update(budget_kind=run.budget_kind)
@@ -22,7 +22,8 @@ def train_config(config: dict[str, Any], run: RunSettings) -> dict[str, Any]:
         densify["grad_threshold"] = run.grad_threshold
     if run.cap is not None:
         densify["cap"] = int(run.cap)
-    mc.update(steps=run.steps, seed=run.seed, backend=run.backend, densify=densify)
+    mc.update(steps=run.steps, seed=run.seed, backend=run.backend, kernels=run.kernels, glue=run.glue,
+              densify=densify)
     scale_schedule(mc, run.steps, run.schedule_steps)
     return mc
 

@@ -1,4 +1,4 @@
-"""The fused v2 path (``rasterize(..., cuda_kernels="v2")``) on a stand-in device (tests/device_mix.py):
+"""The fused v2 path (``rasterize(..., backend=Renderer(kernels="v2"))``) on a stand-in device (tests/device_mix.py):
 no operator mixes the host camera with the device's tensors, and the host synchronisations of one
 forward and one backward are counted: the binding's pair count is the only one of its own (the
 projection adds none: no ``nonzero``, no camera copies), the backward has none without softmax and
@@ -15,7 +15,7 @@ from cuda_v2_standin import OnHost, StandInCompositing, StandInProjection
 from device_mix import CPU, OTHER, simulated_gpu
 
 from smgs.camera import Camera
-from smgs.raster import cuda_v2, projection_cuda, rasterize
+from smgs.raster import Renderer, cuda_v2, projection_cuda, rasterize
 from smgs.raster.types import MODES, mode_flags
 
 
@@ -57,7 +57,7 @@ def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_onc
         monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
         s = _splats(60, OTHER, sh)
         box = {}
-        n_fwd, where_fwd = _counted(m, lambda: box.update(out=_render(s, cam, mode, sh, cuda_kernels="v2")))
+        n_fwd, where_fwd = _counted(m, lambda: box.update(out=_render(s, cam, mode, sh, backend=Renderer(kernels="v2"))))
         out = box["out"]
         n_bwd, where_bwd = _counted(m, lambda: (out.rgb.mean() + out.depth.mean()).backward())
         assert proj.base.calls == ["project_forward_torch", "project_backward_torch"]
@@ -105,7 +105,7 @@ def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_not
             s[name][at] = value
         m.reset()
         with pytest.raises(ValueError, match=message):
-            _render(s, cam, "softmax_gs", True, cuda_kernels="v2")
+            _render(s, cam, "softmax_gs", True, backend=Renderer(kernels="v2"))
         assert m.counts["binding forward: the pair count"] == 1     # rendered, then refused
         # the flag went to the host without a wait and rode on the pair count's; only the naming
         # after it (checks.finite's exact count, the error path) reads the device again
@@ -129,5 +129,5 @@ def test_the_lean_glue_renders_an_infinite_gamma_without_complaint(monkeypatch):
         s = _splats(60, OTHER, sh=False)
         with torch.no_grad():
             s["gamma"][:5] = float("inf")
-        out = _render(s, cam, "softmax_gs", False, cuda_kernels="v2")
+        out = _render(s, cam, "softmax_gs", False, backend=Renderer(kernels="v2"))
         assert (comp.base.saved["v"]["radii"][5:10] != 0).any() and torch.isfinite(out.rgb.cpu()).all()

@@ -21,8 +21,7 @@ from device_mix import OTHER, simulated_gpu
 
 from smgs import Camera
 from smgs.raster import cuda_v2, projection_cuda, rasterize
-from smgs.raster.cuda_v2 import KERNELS_ENV
-from smgs.raster.device_glue import GLUE_ENV
+from smgs.raster.backends import GLUE_ENV, KERNELS_ENV
 
 PATHS = {"default": {}, "lean glue": {GLUE_ENV: "lean"}, "v2": {KERNELS_ENV: "v2"},
          "v2 + lean glue": {KERNELS_ENV: "v2", GLUE_ENV: "lean"}}

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Literal, TypeVar
 
 from smgs.raster import constants as K
+from smgs.raster.backends import AXES, Renderer, is_default
 from smgs.ranges import Range, range_problems
 from smgs.train.sections import (BUDGETS, CAPPED_KINDS, COUNT, FRACTION, HPARAMS, RATE, DensifyConfig,
                                  GaussianConfig, LossConfig, OptimConfig, ParamInit, hparams, strategy_name)
@@ -101,7 +102,8 @@ class TrainConfig:
     on the transmittance (default 1e-4, the 3DGS rule; it applies to vanilla steps only, so in
     softmax modes never inside the softmax head; 0 turns it off everywhere,
     ``smgs.raster.constants.T_MIN``). ``k_max_scope``: what the softmax head is, each pixel's first
-    k_max composited splats (``pixel``) or its tile list's first k_max entries (``patch``)."""
+    k_max composited splats (``pixel``) or its tile list's first k_max entries (``patch``).
+    ``backend``, ``kernels``, ``glue``: the renderer and its variants (``renderer``)."""
 
     mode: str = "softmax_gs"
     steps: int = 30_000
@@ -110,6 +112,8 @@ class TrainConfig:
     k_max_scope: Literal["pixel", "patch"] = K.DEFAULT_K_MAX_SCOPE   # docs/kmax-scope.md
     eq15: Literal["solved", "printed"] = "solved"
     backend: str = "auto"
+    kernels: str | None = None   # the backend's variants (smgs.raster.backends): None, the environment's
+    glue: str | None = None      # (SMGS_CUDA_KERNELS, SMGS_CUDA_GLUE), else the backend's default
     t_min: float = K.T_MIN
     sort: str = "global"    # or "per_pixel" (StopThePop's order; smgs.raster.rasterize)
     sh_degree_interval: int = 1000
@@ -119,6 +123,14 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=lambda: densify_config("full"))   # the default strategy
+
+    def __post_init__(self) -> None:
+        Renderer(self.backend, self.kernels, self.glue)   # refuses an unknown backend or variant, naming it
+
+    @property
+    def renderer(self) -> Renderer:
+        """What the trainer renders with: the backend and its variants."""
+        return Renderer(self.backend, self.kernels, self.glue)
 
     RANGES: ClassVar[dict[str, Range]] = {
         "steps": Range(0, integer=True), "seed": Range(0, integer=True), "k_max": Range(0, integer=True),
@@ -226,24 +238,33 @@ def current_keys(cls: type, data: dict[str, Any], where: str = "") -> dict[str, 
 
 def current_train_keys(data: dict[str, Any]) -> dict[str, Any]:
     """A TrainConfig dict (e.g. a checkpoint's) with every section's earlier key names as today's, in
-    today's form (``CURRENT_FORM``: the densify section with its strategy's keys only)."""
+    today's form (``CURRENT_FORM``: the densify section with its strategy's keys only; the renderer's
+    variants, unset where written before they were settings)."""
     def current(cls: type, section: dict[str, Any]) -> dict[str, Any]:
         section = current_keys(cls, section)
         return CURRENT_FORM[cls](section) if cls in CURRENT_FORM else section
 
-    return _rename_sections(data, current)
+    return _rename_sections({**dict.fromkeys(AXES), **data}, current)
+
+
+def without_default_variants(data: dict[str, Any]) -> dict[str, Any]:
+    """A TrainConfig dict without ``kernels`` and ``glue`` where they are unset or every backend's
+    default: results hashed and checkpoints written before they were settings keep their identity
+    (``earlier_train_keys``; a checkpoint's config is compared with a run's so)."""
+    return {k: v for k, v in data.items() if not (k in AXES and is_default(k, v))}
 
 
 def earlier_train_keys(data: dict[str, Any]) -> dict[str, Any]:
     """A TrainConfig dict in the form in which finished results were hashed (protocols.cell.result_hash):
     each section in its earlier form (``EARLIER_FORM``: the densify section with every built-in
-    strategy's keys), each renamed key under its earlier name (``RENAMED``)."""
+    strategy's keys), each renamed key under its earlier name (``RENAMED``), the renderer's variants
+    left out where they ask for what their absence meant (``without_default_variants``)."""
     def earlier(cls: type, section: dict[str, Any]) -> dict[str, Any]:
         section = EARLIER_FORM[cls](section) if cls in EARLIER_FORM else section
         back = {new: old for old, new in getattr(cls, "RENAMED", {}).items()}
         return {back.get(k, k): v for k, v in section.items()}
 
-    return _rename_sections(data, earlier)
+    return _rename_sections(without_default_variants(data), earlier)
 
 
 def _rename_sections(data: dict[str, Any], rename: Callable[[type, dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:

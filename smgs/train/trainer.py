@@ -17,9 +17,10 @@ import torch
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
-from smgs.device import as_device, check_backend, generator_state, restore_generator
+from smgs.device import as_device, generator_state, restore_generator
 from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
+from smgs.raster.backends import check_backend
 from smgs.raster.checks import NonFiniteInputError
 from smgs.raster.kernel_clock import KernelClock
 from smgs.raster.ray_depth import check_sort
@@ -81,6 +82,7 @@ class Trainer:
         check_sort(cfg.sort)
         self.device = as_device(device)
         check_backend(cfg.backend, self.device)
+        self.renderer = cfg.renderer   # the backend and its variants (smgs.raster.backends)
         keep_freed_buffers()  # per-step image temporaries reuse heap pages (see smgs.train.allocator)
         self.scene = scene
         self.cfg = cfg
@@ -182,7 +184,7 @@ class Trainer:
             mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg,
             sh_rest=g.params["shN"] if deg > 0 else None,
             background=background,
-            backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
+            backend=self.renderer, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
             clamp_sh_colors=self.cfg.gaussians.clamp_colors, leaders=leaders)
 
