@@ -68,18 +68,23 @@ def worker(tree: str) -> None:
 
 
 class Worker:
-    def __init__(self, tree: Path, ext_dir: Path) -> None:
-        env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(ext_dir))
-        self.proc = subprocess.Popen([sys.executable, str(HERE), "--worker", str(tree)], stdin=subprocess.PIPE,
+    """A worker process of ``script`` serving JSON-line requests for the smgs of ``tree`` (bench/ab.py's
+    and bench/train_step.py's); ``ext_dir``: its own extension cache (None: the shared one, which is
+    keyed by the sources)."""
+
+    def __init__(self, tree: Path, ext_dir: Path | None = None, script: Path = HERE) -> None:
+        env = dict(os.environ) if ext_dir is None else dict(os.environ, TORCH_EXTENSIONS_DIR=str(ext_dir))
+        self.tree, self.script = tree, script
+        self.proc = subprocess.Popen([sys.executable, str(script), "--worker", str(tree)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, cwd=tree)
 
-    def call(self, **req) -> float:
+    def call(self, **req) -> dict:
         self.proc.stdin.write(json.dumps(req) + "\n")
         self.proc.stdin.flush()
         line = self.proc.stdout.readline()
         if not line:
-            raise SystemExit(f"ab: the worker of {self.proc.args[-1]} stopped (its error is above)")
-        return json.loads(line)["ms"]
+            raise SystemExit(f"{self.script.stem}: the worker of {self.tree} stopped (its error is above)")
+        return json.loads(line)
 
     def close(self) -> None:
         self.proc.stdin.close()
@@ -125,7 +130,7 @@ def main(argv=None) -> None:
                     for r in range(args.warmup + args.repeats):
                         for bw in (False, True):
                             for k in (list(trees) if r % 2 else list(trees)[::-1]):
-                                ms = workers[k].call(scene=scene, mode=mode, k_max=args.k_max, backward=bw)
+                                ms = workers[k].call(scene=scene, mode=mode, k_max=args.k_max, backward=bw)["ms"]
                                 if r >= args.warmup:
                                     ts[(k, bw)].append(ms)
                     imgs = {}

@@ -28,7 +28,6 @@ import json
 import math
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -55,8 +54,10 @@ def build(overrides: list[str], device: str = "cpu"):
     if len(payloads) != 1:
         raise SystemExit(f"train_step: the overrides make {len(payloads)} cells; name one method, scene and budget")
     cfg = payloads[0]["config"]
-    method_cfg, run = cell_settings(cfg).for_method()
-    return create_method(cfg["method"]["name"], load_scene_for(cfg), method_cfg, device=device, run=run)
+    name, scene, made = cfg["method"]["name"], load_scene_for(cfg), cell_settings(cfg).for_method()
+    if isinstance(made, tuple):   # a tree from before the resolved settings (e.g. 698e83b): (config, run)
+        return create_method(name, scene, made[0], device=device, run=made[1])
+    return create_method(name, scene, device=device, resolved=made)
 
 
 class Session:
@@ -81,6 +82,30 @@ class Session:
         self.step = start
         self.tr.profile = True
 
+    def clock_compiled_calls(self) -> None:
+        """For a tree from before ``smgs.raster.kernel_clock`` (no ``Trainer.kernel_clock``): time its
+        compiled calls by wrapping the extension modules' functions (the same names as the clock's),
+        so its split shows the time outside them too."""
+        import importlib
+
+        self.clock_seconds: dict[str, float] = {}
+        calls = {("smgs.raster.cpu", "forward"): "composite fwd", ("smgs.raster.cpu", "backward"): "composite bwd",
+                 ("smgs.raster.projection", "forward"): "projection+SH fwd",
+                 ("smgs.raster.projection", "backward"): "projection+SH bwd",
+                 ("smgs.train.image_loss", "forward"): "loss", ("smgs.train.image_loss", "ray_variance"): "loss"}
+        for (mod, fn), name in calls.items():
+            ext = importlib.import_module(mod)._JIT.module()
+            setattr(ext, fn, self._timed_call(getattr(ext, fn), name))
+
+    def _timed_call(self, f, name: str):
+        def timed(*args):
+            t0 = time.perf_counter()
+            try:
+                return f(*args)
+            finally:
+                self.clock_seconds[name] = self.clock_seconds.get(name, 0.0) + time.perf_counter() - t0
+        return timed
+
     def run(self, n: int, untimed: int = 0) -> dict:
         """``n`` steps, the first ``untimed`` left out of the figures: per-step wall ms, the stages'
         and the kernels' seconds (summed over the timed steps)."""
@@ -90,15 +115,19 @@ class Session:
         tr = self.tr
         tr.timings = {k: 0.0 for k in tr.timings}
         clock = getattr(tr, "kernel_clock", None)   # a tree from before the kernel clock has none
+        if clock is None and not hasattr(self, "clock_seconds"):
+            self.clock_compiled_calls()
         if clock is not None:
             clock.seconds = {}
+        else:
+            self.clock_seconds.clear()
         ms = []
         for _ in range(n):
             t0 = time.perf_counter()
             self.m.train_step(self.step)
             ms.append(1e3 * (time.perf_counter() - t0))
             self.step += 1
-        return {"ms": ms, "stages": dict(tr.timings), "kernels": dict(clock.seconds) if clock else {},
+        return {"ms": ms, "stages": dict(tr.timings), "kernels": dict(clock.seconds if clock else self.clock_seconds),
                 "gaussians": self.m.num_gaussians(), "sh_degree": tr.sh_degree(), "step": self.step}
 
     def image(self, path: str) -> float:
@@ -166,27 +195,6 @@ def worker(tree: str) -> None:
         print(json.dumps(ans), file=answers, flush=True)
 
 
-class Worker:
-    def __init__(self, tree: Path) -> None:
-        env = dict(os.environ)
-        env.pop("PYTHONPATH", None)   # the tree's own smgs, not the caller's
-        self.tree = tree
-        self.proc = subprocess.Popen([sys.executable, str(HERE), "--worker", str(tree)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, env=env, cwd=tree)
-
-    def call(self, **req) -> dict:
-        self.proc.stdin.write(json.dumps(req) + "\n")
-        self.proc.stdin.flush()
-        line = self.proc.stdout.readline()
-        if not line:
-            raise SystemExit(f"train_step: the worker of {self.tree} stopped (its error is above)")
-        return json.loads(line)
-
-    def close(self) -> None:
-        self.proc.stdin.close()
-        self.proc.wait()
-
-
 def load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
@@ -202,7 +210,10 @@ def ab(before: Path, after: Path, overrides: list[str], start: int, chunks: int,
     for name, tree in trees.items():
         if not (tree / "smgs" / "train").is_dir():
             raise SystemExit(f"train_step: --{name} {tree} is not an smgs source tree (no smgs/train there)")
-    workers = {k: Worker(t) for k, t in trees.items()}
+    sys.path.insert(0, str(HERE.parent))
+    from ab import Worker   # bench/ab.py's worker process, serving this script
+
+    workers = {k: Worker(t, script=HERE) for k, t in trees.items()}
     print(f"# before: {trees['before']}\n# after: {trees['after']}\n# {' '.join(overrides)}; "
           f"{start} steps first, then {chunks} rounds of {chunk} steps per tree (the first of each untimed)")
     print(f"# load average at the start: {load()}")
