@@ -17,10 +17,9 @@ strategy's module; it is imported when a run uses it.
 from __future__ import annotations
 
 import dataclasses
-from importlib import metadata
 from typing import Any
 
-from smgs.plugins import entry_points, load_target, source_of
+from smgs.plugins import Registry
 from smgs.train.sections import DensifyConfig
 
 ENTRY_POINT_GROUP = "smgs.strategies"
@@ -30,36 +29,27 @@ BUILTINS: dict[str, str] = {
     "mcmc": "smgs.train.strategies.mcmc:MCMCStrategy",
 }
 
-_registered: dict[str, type] = {}
+_REGISTRY = Registry(ENTRY_POINT_GROUP, BUILTINS, "strategy")
 
 
 def register(name: str, cls: type, overwrite: bool = False) -> None:
     """Register a strategy class in this process (tests, notebooks); it overrides a built-in or a
     plugin of that name."""
-    if name in _registered and not overwrite:
-        raise ValueError(f"densification strategy {name!r} is already registered")
-    _registered[name] = cls
+    _REGISTRY.register(name, cls, overwrite)
 
 
 def unregister(name: str) -> None:
-    _registered.pop(name, None)
-
-
-def _entry_points() -> dict[str, metadata.EntryPoint]:
-    return entry_points(ENTRY_POINT_GROUP, BUILTINS, "plugin strategy")
+    _REGISTRY.unregister(name)
 
 
 def list_strategies() -> list[str]:
     """Every strategy name known here (built-ins, registered, plugins), sorted."""
-    return sorted(set(BUILTINS) | set(_registered) | set(_entry_points()))
+    return _REGISTRY.names()
 
 
 def plugin_source(name: str) -> str | None:
     """``plugin <distribution>`` for a strategy from the entry-point group, None for the others."""
-    if name in _registered or name in BUILTINS:
-        return None
-    ep = _entry_points().get(name)
-    return None if ep is None else source_of(ep)
+    return _REGISTRY.plugin_source(name)
 
 
 def strategy_class(name: str) -> type:
@@ -67,15 +57,11 @@ def strategy_class(name: str) -> type:
     dataclass; a ValueError lists the known names."""
     from smgs.train.strategies.base import Strategy
 
-    if name in _registered:
-        cls = _registered[name]
-    elif name in BUILTINS:
-        cls = load_target(BUILTINS[name], "strategy")
-    elif name in _entry_points():
-        cls = _entry_points()[name].load()
-    else:
+    try:
+        cls = _REGISTRY.get(name)
+    except KeyError:
         raise ValueError(f"unknown densification strategy {name!r} (densify.strategy); known: "
-                         f"{', '.join(list_strategies())} (docs/adding-a-strategy.md)")
+                         f"{', '.join(list_strategies())} (docs/adding-a-strategy.md)") from None
     if not (isinstance(cls, type) and issubclass(cls, Strategy) and dataclasses.is_dataclass(cls)):
         raise TypeError(f"densification strategy {name!r} ({cls!r}) is not a dataclass subclassing "
                         "smgs.train.strategies.Strategy: its fields are its config (docs/adding-a-strategy.md)")
