@@ -83,6 +83,9 @@ BACKENDS: dict[str, Backend] = {
 }
 BACKEND_NAMES: tuple[str, ...] = tuple(BACKENDS)
 AXES = ("kernels", "glue")
+KNOWN: dict[str, frozenset[str]] = {axis: frozenset(c for b in BACKENDS.values() for c in b.axes().get(axis, ()))
+                                    for axis in AXES}
+"""Every variant of each axis that some backend has."""
 
 
 @dataclass(frozen=True)
@@ -110,10 +113,9 @@ class Renderer:
 
 def check_choice(axis: str, value: str | None, where: str) -> None:
     """Refuse a variant that no backend has (``where`` names the setting, for the error)."""
-    known = sorted({c for b in BACKENDS.values() for c in b.axes().get(axis, ())})
-    if value is not None and value not in known:
+    if value is not None and value not in KNOWN[axis]:
         raise ValueError(f"{where}={value!r} names no {axis} variant of any renderer backend; choose one of "
-                         f"{', '.join(known)} (docs/renderer.md#backends-and-variants)")
+                         f"{', '.join(sorted(KNOWN[axis]))} (docs/renderer.md#backends-and-variants)")
 
 
 def is_default(axis: str, value: str | None) -> bool:
