@@ -9,6 +9,8 @@ bindings are the stand-ins of tests/cuda_v2_standin.py, run on the host values o
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 from cuda_v2_standin import OnHost, StandInCompositing, StandInProjection
@@ -17,6 +19,22 @@ from device_mix import CPU, OTHER, simulated_gpu
 from smgs.camera import Camera
 from smgs.raster import Renderer, cuda_v2, projection_cuda, rasterize
 from smgs.raster.types import MODES, mode_flags
+
+
+def _lean_camera() -> Camera:
+    return Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+
+
+@contextlib.contextmanager
+def _lean_v2(monkeypatch):
+    """The v2 kernels under the lean glue on the stand-in device: (its counts, the compositing)."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
+    with simulated_gpu(monkeypatch) as m:
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        yield m, comp
 
 
 def _splats(n: int, device, sh: bool) -> dict[str, torch.Tensor]:
@@ -93,13 +111,8 @@ def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_not
     no launch of its own); a bad Gaussian is culled there, so the compositing renders nothing of it
     (a NaN splat's box is the whole image), and the flag, copied before the compositing's one wait,
     is read after it: the same error as the verified glue's, naming the input."""
-    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
-    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
-    with simulated_gpu(monkeypatch) as m:
-        proj = OnHost(StandInProjection(), m)
-        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
-        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
-        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+    cam = _lean_camera()
+    with _lean_v2(monkeypatch) as (m, comp):
         s = _splats(60, OTHER, sh=True)
         with torch.no_grad():
             s[name][at] = value
@@ -119,13 +132,8 @@ def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_not
 
 def test_the_lean_glue_renders_an_infinite_gamma_without_complaint(monkeypatch):
     """γ = +inf is valid (a hard depth decay): the kernel's check lets it through."""
-    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
-    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
-    with simulated_gpu(monkeypatch) as m:
-        proj = OnHost(StandInProjection(), m)
-        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
-        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
-        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+    cam = _lean_camera()
+    with _lean_v2(monkeypatch) as (m, comp):
         s = _splats(60, OTHER, sh=False)
         with torch.no_grad():
             s["gamma"][:5] = float("inf")
