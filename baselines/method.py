@@ -80,6 +80,8 @@ class RunSettings:
     cap: int | None                  # a hard maximum number of primitives (None: none)
     schedule_steps: int | None       # the run length the protocol's schedules are written for (None: keep the method's)
     backend: str = "auto"            # the renderer backend asked for (auto | cpu | cuda | reference)
+    kernels: str | None = None       # its variants asked for (smgs.raster.backends; None: the environment's,
+    glue: str | None = None          # else the default): the config's renderer.kernels, renderer.glue
 
     @property
     def preset(self) -> str:

@@ -22,7 +22,7 @@ from smgs.atomic import atomic_write_bytes
 from smgs.io.gaussians import (gaussians_from_splats, splats_extent, splats_from_state,
                                splats_from_trainer, train_overrides)
 from smgs.io.ply import PlySplats, read_ply, write_ply
-from smgs.train.config import TrainConfig, current_train_keys, from_dict, to_dict
+from smgs.train.config import TrainConfig, current_train_keys, from_dict, to_dict, without_default_variants
 from smgs.train.gaussians import Gaussians
 from smgs.train.trainer import Trainer
 
@@ -121,12 +121,12 @@ class GaussianSplatting:
 
     def prepare(self) -> str:
         """Build or load the renderer, projection and loss kernels this run uses; returns the
-        renderer backend."""
+        renderer backend and its variants."""
         from smgs.train.kernels import prepare_kernels
 
-        backend = prepare_kernels(self.config.backend, self.device, torch.float32, self.config.t_min,
+        renders = prepare_kernels(self.config.renderer, self.device, torch.float32, self.config.t_min,
                                   self.config.sort)
-        return f"renderer backend {backend}"
+        return f"renderer backend {renders}"
 
     def describe(self) -> dict[str, Any]:
         return {"method": self.name, "config": to_dict(self.config), "hparams": self.config.optim.name,
@@ -157,7 +157,8 @@ class GaussianSplatting:
         saved = state.get("trainer", {}).get("config")
         if isinstance(saved, dict):   # written before a key's rename: read under today's names
             saved = current_train_keys(saved)
-        diff = config_difference(saved, to_dict(self.config))
+        diff = config_difference(without_default_variants(saved) if isinstance(saved, dict) else saved,
+                                 without_default_variants(to_dict(self.config)))
         if diff:
             raise ValueError(f"checkpoint {file} was trained under another config ({diff}); it cannot "
                              "be resumed under this one (delete it, or rerun with --force)")

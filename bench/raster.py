@@ -155,7 +155,11 @@ def mode_calls(params, cam, mode, backend, k_max, sort="global", leaders=False, 
     if scope != "pixel":
         extra["k_max_scope"] = scope
     if kernels:
-        extra["cuda_kernels"] = kernels
+        try:   # the variant in the renderer's registry; a tree from before it took the keyword
+            from smgs.raster import Renderer
+            backend = Renderer(backend, kernels=kernels)
+        except ImportError:
+            extra["cuda_kernels"] = kernels
 
     def call(p):
         return rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["colors"], cam,

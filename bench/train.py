@@ -132,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit4", action="store_true", help="also time full 10K-step 4-Gaussian fits")
     ap.add_argument("--json", help="write the rows to this file")
     args = ap.parse_args(argv)
-    from smgs.device import DeviceError, check_backend, device_name, resolve_device
+    from smgs.device import DeviceError, device_name, resolve_device
+    from smgs.raster.backends import check_backend
 
     try:
         device = resolve_device(args.device)

@@ -20,11 +20,18 @@ from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_
 from protocols.live_cells import live_cell
 from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
                                read_result, write_result)
-from protocols.run_settings import CellSettings, cell_settings
+from protocols.run_settings import CellSettings, asked_renderer, cell_settings
 from protocols.sections import BudgetConfig
 from smgs.train.config import earlier_train_keys
 
 LOG = "log.txt"
+
+
+def renderer_is_default(section: Any) -> bool:
+    """Whether a config's ``renderer`` section asks for every variant's default (or is absent)."""
+    from smgs.raster.backends import is_default
+
+    return not section or (isinstance(section, dict) and all(is_default(k, v) for k, v in section.items()))
 
 
 def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
@@ -33,6 +40,8 @@ def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
     changed default retrains instead of reusing a result computed under the old one. ``settings``:
     the cell's ``CellSettings`` where the caller has them (made here otherwise)."""
     ident = {k: v for k, v in cfg.items() if k not in VOLATILE}
+    if renderer_is_default(cfg.get("renderer")):   # as results were hashed before variants were settings
+        ident.pop("renderer", None)
     if isinstance(cfg.get("budget"), dict):
         try:
             ident["budget"] = BudgetConfig.of(cfg).identity()
@@ -72,7 +81,8 @@ def with_device(cfg: dict) -> dict:
     ``cpu``; ``cuda`` → ``cuda:<index>``), so the config hash, config.yaml and results.json name
     the device the run used: a result of another device is not taken for this one. Raises
     ``smgs.device.DeviceError`` (a device this machine lacks, a backend of the other kind)."""
-    from smgs.device import check_backend, resolve_device
+    from smgs.device import resolve_device
+    from smgs.raster.backends import check_backend
 
     dev = resolve_device(cfg.get("device"))
     check_backend(str(cfg.get("backend", "auto")), dev)
@@ -231,6 +241,10 @@ def _failed(key: str, run_dir: Path, base: RunResult, e: Exception, log: logging
     base.status = "skipped" if isinstance(e, DatasetMissing) else "failed"
     base.error = f"{type(e).__name__}: {e}"
     base.versions = versions(base.config.get("backend", "auto"), _device_label(base.config.get("device", "cpu")))
+    try:
+        base.versions["renderer"] = asked_renderer(base.config).describe() + " asked"
+    except ValueError:   # an unknown one: the error says so
+        pass
     try:
         write_result(run_dir, base)
     except OSError as w:  # the run's folder itself is the problem: the summary still says why

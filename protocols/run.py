@@ -300,7 +300,8 @@ def check_devices(payloads: list[dict], executor: str) -> None:
     name, or a backend bound to the other kind of device stops the experiment with the fix. Cells
     that run on other machines (SLURM) are checked for spelling and backend here and for the
     hardware on their node."""
-    from smgs.device import DeviceError, check_backend, parse_device, resolve_device
+    from smgs.device import DeviceError, parse_device, resolve_device
+    from smgs.raster.backends import check_backend
 
     problems = []
     for p in payloads:

@@ -10,6 +10,13 @@ from typing import Any
 from baselines.method import Resolved, RunSettings, merge_config
 from baselines.registry import resolve
 from protocols.sections import BudgetConfig, ProtocolConfig
+from smgs.raster.backends import Renderer
+
+
+def asked_renderer(cfg: dict) -> Renderer:
+    """The renderer a cell's config asks for: ``backend`` and the ``renderer`` section's variants."""
+    section = cfg.get("renderer") or {}
+    return Renderer(str(cfg.get("backend", "auto")), section.get("kernels"), section.get("glue"))
 
 
 def method_settings(cfg: dict) -> dict[str, Any]:
@@ -20,13 +27,14 @@ def method_settings(cfg: dict) -> dict[str, Any]:
 
 def run_settings(cfg: dict) -> RunSettings:
     """The cell's steps (a dataset with its own step count keeps its own schedule), seed, budget
-    and renderer backend."""
+    and renderer (``backend`` and the ``renderer`` section's variants)."""
     budget, protocol = BudgetConfig.of(cfg), ProtocolConfig.of(cfg)
     own_steps = cfg["dataset"].get("steps")
+    renderer = asked_renderer(cfg)
     return RunSettings(steps=int(own_steps or protocol.steps), seed=int(cfg["seed"]), budget=budget.name,
                        budget_kind=str(budget.kind), grad_threshold=budget.grad_threshold, cap=budget.cap,
                        schedule_steps=None if own_steps else protocol.schedule_steps,
-                       backend=cfg.get("backend", "auto"))
+                       backend=renderer.backend, kernels=renderer.kernels, glue=renderer.glue)
 
 
 @dataclass(frozen=True)

@@ -24,14 +24,14 @@ from protocols.fps_slot import fps_slot
 from protocols.live_cells import NeighbourLog
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
-from protocols.run_settings import CellSettings
+from protocols.run_settings import CellSettings, asked_renderer
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
 from smgs.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
 from smgs.metrics.timing import TrainClock, device_name, measure_render_fps, track_peak_memory
-from smgs.raster import mode_flags
+from smgs.raster import Renderer, mode_flags
 
 
 def left_out_of(plan: list[str]) -> list[str]:
@@ -179,10 +179,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     result.render_fps = fps.fps
     result.render_device = fps.device
     result.peak_memory_mb = peak.mib
-    from smgs.raster import cpu_build, resolve_backend
-
-    result.versions = versions(resolve_backend(cfg.get("backend", "auto"), device, torch.float32), device_name(device))
-    result.versions["cpu_isa"] = cpu_build.isa_in_use()   # SIMD path of the compiled CPU kernels
+    record_renderer(result, cfg, settings, device)
     result.diagnostics = diagnostics(method, desc, plan, within, ev, clock, peak.kind, fps_conditions)
     result.diagnostics["train_conditions"] = {"threads": torch.get_num_threads(),
                                               "cells_in_parallel": neighbours.most}
@@ -192,7 +189,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
                                                   run.grad_threshold, log)
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
-            result.consistency = consistency(method, scene, run_dir, ev, device)
+            result.consistency = consistency(method, scene, run_dir, ev, device, asked_renderer(cfg))
     result.status = "ok"
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
@@ -200,6 +197,17 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
                                        "collapse_watch": watch.to_json()})
     after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
+
+
+def record_renderer(result: RunResult, cfg: dict, settings: CellSettings, device: torch.device) -> None:
+    """What rendered, in ``result.versions``: the backend, the backend with its variants (``renderer``,
+    e.g. "cuda (kernels v2, glue lean)") and the SIMD path of the compiled CPU kernels (``cpu_isa``)."""
+    from smgs.raster import cpu_build, render_variant
+
+    v = render_variant(asked_renderer(cfg), device, torch.float32)
+    result.versions = versions(v.backend, device_name(device))
+    result.versions["renderer"] = v.describe(str((settings.resolved or {}).get("sort", "global")))
+    result.versions["cpu_isa"] = cpu_build.isa_in_use()
 
 
 def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
@@ -316,19 +324,23 @@ def diagnostics(method, desc: dict, plan: list[str], within: list[float], ev: Ev
     return diag
 
 
-def _no_popping_ratio(method, ev: EvalConfig, device: torch.device) -> str:
+def _no_popping_ratio(method, ev: EvalConfig, device: torch.device, renderer: Renderer) -> str:
     """Why this run's video is rendered without leading-splat maps ("" when it is rendered with)."""
     if ev.popping_ratio == "off":
         return "eval.popping_ratio=off"
     if not isinstance(method, LeadingSplats):
         return f"method {method.name!r} gives no leading-splat map (baselines.method.LeadingSplats)"
     if ev.popping_ratio == "auto" and device.type == "cuda":
-        return ("the CUDA backend has no leading-splat kernel; eval.popping_ratio=on composites the video's "
-                "frames on host copies (slow for large scenes)")
+        from smgs.raster.backends import variant
+
+        v = variant(renderer, "cuda" if renderer.backend == "auto" else renderer.backend)
+        if v.kernel_set.pixel is None:
+            return (f"the renderer {v.describe()} has no leading-splat kernel; eval.popping_ratio=on composites the "
+                    "video's frames on host copies (slow for large scenes), renderer.kernels=v2 on the GPU")
     return ""
 
 
-def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.device) -> dict:
+def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.device, renderer: Renderer) -> dict:
     """Table 4 for this run (paper supp. Sec. 7): a video of 128 frames between consecutive test
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
     pixels, and the popping ratio where the leading-splat maps are made (``eval.popping_ratio``).
@@ -350,7 +362,7 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.devi
     if max_w and traj[0].width > max_w:
         traj = [c.scaled(max_w / c.width) for c in traj]
 
-    no_pop = _no_popping_ratio(method, ev, device)
+    no_pop = _no_popping_ratio(method, ev, device, renderer)
 
     def render(cam):   # with the leading-splat map where it is made (the popping ratio)
         out = method.render(cam) if no_pop else method.render_leaders(cam)

@@ -32,6 +32,25 @@ NUMBERS: tuple[tuple[str, str, float], ...] = (
 POPPING_RATIO: tuple[str, ...] = ("auto", "on", "off")
 
 
+def renderer_problems(cfg: dict) -> list[str]:
+    """An unknown renderer backend or variant (``backend``, ``renderer.kernels``, ``renderer.glue``)."""
+    from smgs.raster.backends import AXES, BACKEND_NAMES, check_choice
+
+    backend = cfg.get("backend", "auto")
+    if backend != "auto" and backend not in BACKEND_NAMES:
+        return [f"backend={backend!r} is not a renderer backend; expected auto, {', '.join(BACKEND_NAMES)}"]
+    section = cfg.get("renderer") or {}
+    if not isinstance(section, dict):
+        return [f"renderer={section!r}: expected a section with {', '.join(AXES)}"]
+    problems = [f"renderer.{k}: not a renderer setting; known: {', '.join(AXES)}" for k in section if k not in AXES]
+    for axis in AXES:
+        try:
+            check_choice(axis, section.get(axis), f"renderer.{axis}")
+        except ValueError as e:
+            problems.append(str(e))
+    return problems
+
+
 def _choices() -> tuple[tuple[str, tuple[str, ...]], ...]:
     """(dotted key, the values it may take) of the settings that name one of a few things."""
     from protocols.cell_lock import ON_BUSY
@@ -82,11 +101,7 @@ def config_problems(cfg: dict, settings: CellSettings | None = None) -> list[str
         value = _get(cfg, key)
         if value is not None and value not in allowed:
             problems.append(f"{key}={value!r}: must be one of {', '.join(allowed)}")
-    backend = cfg.get("backend", "auto")
-    from smgs.raster.api import BACKEND_NAMES
-
-    if backend != "auto" and backend not in BACKEND_NAMES:
-        problems.append(f"backend={backend!r} is not a renderer backend; expected auto, {', '.join(BACKEND_NAMES)}")
+    problems += renderer_problems(cfg)
     if not problems:
         from protocols.sections import BudgetConfig, EvalConfig, ProtocolConfig
 
@@ -143,8 +158,8 @@ def schedule_warning(cfg: dict, settings: CellSettings | None = None) -> str | N
     if tc is None or not tc.densify.enabled or tc.densify.refine_start >= run.steps:
         return None
     d = tc.densify
-    reset, lr = d.reset_value, tc.optim.opacities_lr
-    recover = math.ceil(-math.log(reset / (1 - reset)) / lr) if lr > 0 else 0
+    reset, lr = getattr(d, "reset_value", None), tc.optim.opacities_lr   # a strategy that resets opacities to it
+    recover = math.ceil(-math.log(reset / (1 - reset)) / lr) if reset and lr > 0 else 0
     bad = []
     if d.refine_every < MIN_REFINE_EVERY:
         bad.append(f"refines every {d.refine_every} step(s)")

@@ -12,7 +12,8 @@ from reports.table_model import md_text
 from smgs.env import cpu_model, git_revision
 
 ITEMS = [("smgs", "smgs"), ("torch", "torch"), ("numpy", "numpy"), ("python", "python"), ("backend", "backend"),
-         ("device", "device"), ("cpu", "CPU model"), ("gpu", "GPU"), ("git", "git revision")]
+         ("renderer", "renderer (backend, variants)"), ("cpu_isa", "CPU SIMD path"), ("device", "device"),
+         ("cpu", "CPU model"), ("gpu", "GPU"), ("git", "git revision")]
 
 
 def _version(module: str) -> str:
@@ -28,7 +29,8 @@ def this_machine(probed_backends: Sequence[str] = ()) -> dict[str, str]:
     battery rendered with (none: the backend row says it was not probed)."""
     env = {"smgs": _version("smgs"), "torch": _version("torch"), "numpy": _version("numpy"),
            "python": platform.python_version(), "cpu": cpu_model(), "git": git_revision(),
-           "matplotlib": _version("matplotlib")}
+           "matplotlib": _version("matplotlib"), "renderer": "— (a run's: its backend as it rendered)",
+           "cpu_isa": _cpu_isa()}
     try:
         import torch
 
@@ -41,6 +43,16 @@ def this_machine(probed_backends: Sequence[str] = ()) -> dict[str, str]:
     except Exception as e:  # noqa: BLE001
         env["gpu"] = f"unknown (torch not importable: {type(e).__name__})"
     return with_probed(env, probed_backends)
+
+
+def _cpu_isa() -> str:
+    """The SIMD path the compiled CPU kernels would take here (nothing is built)."""
+    try:
+        from smgs.raster.cpu_build import isa_in_use
+
+        return isa_in_use()
+    except Exception as e:  # noqa: BLE001 - report, never fail, on an import problem
+        return f"unknown ({type(e).__name__})"
 
 
 def with_probed(machine: dict[str, str], probed_backends: Sequence[str] | None) -> dict[str, str]:

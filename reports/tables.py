@@ -88,7 +88,7 @@ def row_order(key: RowKey) -> tuple:
 
 
 def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
-    """Say when a table mixes protocol presets, devices or renderer backends."""
+    """Say when a table mixes protocol presets, devices or renderers (backends or their variants)."""
     runs = list(runs)
     notes = []
     presets = sorted({r.preset for r in runs})
@@ -101,9 +101,11 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
                      - {"None"})
     if len(devices) > 1:
         notes.append(f"{what} mixes devices ({', '.join(devices)}).")
-    backends = sorted({r.versions.get("backend") for r in runs if r.versions.get("backend")})
-    if len(backends) > 1:
-        notes.append(f"{what} mixes renderer backends ({', '.join(backends)}).")
+    # what rendered: the backend and its variants where the run recorded them (results.json versions)
+    renderers = sorted({str(r.versions.get("renderer") or r.versions.get("backend")) for r in runs
+                        if r.versions.get("renderer") or r.versions.get("backend")})
+    if len(renderers) > 1:
+        notes.append(f"{what} mixes renderer backends or variants ({'; '.join(renderers)}).")
     pre = sorted({f"{r.scene}/{r.method} ← {r.source.get('ply')}" for r in runs
                   if (r.source or {}).get("kind") == "pretrained"})
     if pre:

@@ -4,7 +4,7 @@ a ``torch.device`` to everything that creates a tensor.
 
 ``auto`` is the first CUDA device when torch sees one, else the CPU. Asking for CUDA where there is
 none is an error, never a silent CPU run; so is a renderer backend that cannot render on the
-device (``backend=cuda`` with ``device=cpu`` and the reverse).
+device (``backend=cuda`` with ``device=cpu`` and the reverse: ``smgs.raster.backends.check_backend``).
 """
 
 from __future__ import annotations
@@ -17,8 +17,6 @@ from smgs.env import cpu_model
 
 DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
 _CUDA_RE = re.compile(r"^cuda(?::(\d+))?$")
-# renderer backends bound to one kind of device ("reference" renders on any)
-_BACKEND_DEVICE = {"cpu": "cpu", "cuda": "cuda"}
 
 
 class DeviceError(ValueError):
@@ -75,15 +73,6 @@ def as_device(device: torch.device | str | None) -> torch.device:
                                              or (device.type == "cuda" and device.index is not None)):
         return device
     return resolve_device(device)
-
-
-def check_backend(backend: str, device: torch.device) -> None:
-    """Refuse a renderer backend bound to another kind of device than the run's."""
-    want = _BACKEND_DEVICE.get(str(backend))
-    if want is not None and want != device.type:
-        raise DeviceError(f"backend={backend} renders on the {want.upper()} only, but the run's device is "
-                          f"{device}; use backend=auto (picks the {device.type} backend) or "
-                          f"device={want if want == 'cpu' else 'cuda'}")
 
 
 def device_name(device: torch.device | str) -> str:

@@ -1,6 +1,7 @@
 """What every registry of plug-ins shares (methods: baselines.registry; scene formats and datasets:
-smgs.data.registry): entries named as ``"module:attr"`` strings and imported on use, and third-party
-entries from a Python entry-point group, never allowed to shadow a built-in."""
+smgs.data.registry; densification strategies: smgs.train.strategies.registry): entries named as
+``"module:attr"`` strings and imported on use, and third-party entries from a Python entry-point
+group, never allowed to shadow a built-in (``Registry``)."""
 
 from __future__ import annotations
 
@@ -39,3 +40,47 @@ def load_target(target: str, what: str) -> Any:
     for part in attr.split("."):
         obj = getattr(obj, part)
     return obj
+
+
+class Registry:
+    """Entries by name of one kind of plug-in, looked up in this order: those registered in this
+    process (``register``: tests, notebooks), the built-ins (``"module:attr"`` strings), then the
+    plugins of the entry-point group ``group``. Listing imports nothing; ``get`` imports the entry."""
+
+    def __init__(self, group: str, builtins: dict[str, str], what: str) -> None:
+        self.group, self.builtins, self.what = group, builtins, what
+        self._registered: dict[str, Any] = {}
+
+    def register(self, name: str, entry: Any, overwrite: bool = False) -> None:
+        """Register ``entry`` as ``name`` in this process; it overrides a built-in or plugin of that name."""
+        if name in self._registered and not overwrite:
+            raise ValueError(f"{self.what} {name!r} is already registered")
+        self._registered[name] = entry
+
+    def unregister(self, name: str) -> None:
+        self._registered.pop(name, None)
+
+    def entry_points(self) -> dict[str, metadata.EntryPoint]:
+        return entry_points(self.group, self.builtins, f"plugin {self.what}")
+
+    def names(self) -> list[str]:
+        """Every name known here (built-ins, registered, plugins), sorted."""
+        return sorted(set(self.builtins) | set(self._registered) | set(self.entry_points()))
+
+    def plugin_source(self, name: str) -> str | None:
+        """``plugin <distribution>`` for an entry from the entry-point group, None for the others."""
+        if name in self._registered or name in self.builtins:
+            return None
+        ep = self.entry_points().get(name)
+        return None if ep is None else source_of(ep)
+
+    def get(self, name: str) -> Any:
+        """The entry registered as ``name`` (imported now); a KeyError where there is none."""
+        if name in self._registered:
+            return self._registered[name]
+        if name in self.builtins:
+            return load_target(self.builtins[name], self.what)
+        ep = self.entry_points().get(name)
+        if ep is None:
+            raise KeyError(name)
+        return ep.load()

@@ -48,9 +48,13 @@ class Range:
 
 
 def range_problems(obj: Any, where: str = "") -> list[str]:
-    """``key=value: must be …`` for every field of ``obj`` outside its section's ``RANGES``."""
+    """``key=value: must be …`` for every field of ``obj`` outside its section's ``RANGES`` (a
+    subclass's with its bases': a densification strategy's and the densify section's shared keys')."""
+    ranges: dict[str, Range] = {}
+    for cls in reversed(type(obj).__mro__):
+        ranges.update(vars(cls).get("RANGES", {}))
     out = []
-    for name, rng in getattr(type(obj), "RANGES", {}).items():
+    for name, rng in ranges.items():
         value = getattr(obj, name)
         if not rng.holds(value):
             out.append(f"{where + '.' if where else ''}{name}={value!r}: must be {rng.describe()}")

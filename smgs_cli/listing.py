@@ -1,5 +1,6 @@
-"""``smgs list WHAT``: the methods, experiments, datasets, budgets and protocol presets a command line
-can name, each with what its config (or its class) says about it."""
+"""``smgs list WHAT``: the methods, experiments, datasets, budgets, protocol presets, densification
+strategies and renderer backends a command line can name, each with what its config (or its class)
+says about it."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import sys
 from pathlib import Path
 
 GROUPS = {"experiments": "experiment", "datasets": "dataset", "budgets": "budget", "protocols": "protocol"}
-USAGE = "usage: smgs list {" + ",".join(("methods", *GROUPS)) + "}"
+LISTED = ("methods", *GROUPS, "strategies", "renderers")
+USAGE = "usage: smgs list {" + ",".join(LISTED) + "}"
 ABOUT_CHARS = 160   # whole sentences of a config's opening comment, up to about this many characters
 SENTENCE_END = re.compile(r"(?<=[.!?])\s+(?=[A-Z\"'(<`])")
 
@@ -71,17 +73,46 @@ def method_entries() -> list[tuple[str, str]]:
     return out
 
 
+def strategy_entries() -> list[tuple[str, str]]:
+    """The densification strategies: a built-in's first sentence of its class's doc (importing it), a
+    plugin's distribution (not imported)."""
+    from smgs.train.strategies.registry import BUILTINS, list_strategies, plugin_source, strategy_class
+
+    out = []
+    for name in list_strategies():
+        pick = f"+method.train.densify.strategy={name}"
+        if name in BUILTINS:
+            about = sentences(" ".join((strategy_class(name).__doc__ or "").split()))[0]
+            out.append((name, f"{about} ({pick})"))
+        else:
+            out.append((name, f"a densification strategy from a plugin: {pick} ({plugin_source(name) or 'registered'})"))
+    return out
+
+
+def renderer_entries() -> list[tuple[str, str]]:
+    """The renderer backends and each one's variants (``smgs.raster.backends``; nothing is built)."""
+    from smgs.raster.backends import BACKENDS
+
+    out = []
+    for name, spec in BACKENDS.items():
+        axes = "; ".join(f"renderer.{axis}={'|'.join(choices)}" for axis, choices in spec.axes().items())
+        out.append((name, f"{spec.about} (backend={name}{'; ' + axes if axes else ''})"))
+    return out
+
+
 def main(args: list[str]) -> int:
     if args and args[0] in ("-h", "--help"):
         print(f"{USAGE}\n\nWhat a command line can name, one per line with what it is: the methods (method=, "
               "grid.methods=), experiments (+experiment=), datasets (dataset=), budgets (budget=, grid.budgets=) "
-              "and protocol presets (protocol=).")
+              "protocol presets (protocol=), densification strategies (method.train.densify.strategy=) and "
+              "renderer backends with their variants (backend=, renderer.kernels=, renderer.glue=).")
         return 0
     what = args[0] if len(args) == 1 else None
-    if what not in ("methods", *GROUPS):
+    if what not in LISTED:
         print(USAGE, file=sys.stderr)
         return 2
-    listed = {"methods": method_entries, "datasets": dataset_entries}
+    listed = {"methods": method_entries, "datasets": dataset_entries, "strategies": strategy_entries,
+              "renderers": renderer_entries}
     entries = listed[what]() if what in listed else config_entries(GROUPS[what])
     width = max((len(n) for n, _ in entries), default=0)
     for name, about in entries:

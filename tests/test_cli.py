@@ -122,7 +122,8 @@ def test_list_descriptions_end_with_a_sentence(capsys):
 
 
 @pytest.mark.parametrize("what, has", [("methods", "softmax_gs"), ("experiments", "budget5"),
-                                       ("datasets", "colmap"), ("budgets", "5pct"), ("protocols", "cpu")])
+                                       ("datasets", "colmap"), ("budgets", "5pct"), ("protocols", "cpu"),
+                                       ("strategies", "mcmc"), ("renderers", "cuda")])
 def test_list_names_what_a_command_line_can_name(what, has, capsys):
     assert main(["list", what]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -131,7 +132,7 @@ def test_list_names_what_a_command_line_can_name(what, has, capsys):
 
 def test_list_of_something_else_is_a_usage_error(capsys):
     assert main(["list", "scenes"]) == 2
-    assert "smgs list {methods,experiments,datasets,budgets,protocols}" in capsys.readouterr().err
+    assert "smgs list {methods,experiments,datasets,budgets,protocols,strategies,renderers}" in capsys.readouterr().err
 
 
 def test_bench_runs_a_benchmark_of_the_checkout(tmp_path, capsys):

@@ -15,7 +15,8 @@ from baselines import create_method
 from protocols.results import read_result
 from protocols.run import run_experiment
 from smgs.data.patterns import pattern_scene
-from smgs.device import DeviceError, check_backend, device_name, resolve_device, restore_generator
+from smgs.device import DeviceError, device_name, resolve_device, restore_generator
+from smgs.raster.backends import check_backend
 from smgs.train import pattern_config
 from smgs.train.trainer import Trainer
 

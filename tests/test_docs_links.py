@@ -103,3 +103,13 @@ def test_no_code_comment_points_at_a_readme_section_or_outside_the_repository():
                     if bad.search(line):
                         hits.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
     assert hits == []
+
+
+def test_the_layout_names_every_bench_script_tool_and_the_command():
+    """docs/README.md's layout names smgs_cli/ and each script of bench/ and tools/ (a new one is
+    listed with what it is for, not left for a reader to find)."""
+    text = (ROOT / "docs" / "README.md").read_text()
+    layout = text[text.index("## Layout"):]
+    scripts = [p for d in ("bench", "tools") for p in sorted((ROOT / d).glob("*.py")) if p.name != "__init__.py"]
+    missing = [f"{p.parent.name}/{p.name}" for p in scripts if p.name not in layout]
+    assert not missing and "smgs_cli/" in layout, missing

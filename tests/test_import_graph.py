@@ -78,5 +78,7 @@ def test_imports_by_name_are_edges(tmp_path):
 def test_the_registries_imports_by_name_are_in_the_graph():
     known = import_graph.modules(ROOT)
     assert "baselines.splatting" in import_graph.imports("baselines.registry", known["baselines.registry"], known)
-    assert {"smgs.raster.cpu", "smgs.raster.cuda", "smgs.raster.reference"} <= \
-        import_graph.imports("smgs.raster.api", known["smgs.raster.api"], known)
+    assert {"smgs.raster.cpu", "smgs.raster.cuda", "smgs.raster.cuda_v2", "smgs.raster.reference"} <= \
+        import_graph.imports("smgs.raster.backends", known["smgs.raster.backends"], known)
+    assert {"smgs.train.strategies.default", "smgs.train.strategies.mcmc"} <= \
+        import_graph.imports("smgs.train.strategies.registry", known["smgs.train.strategies.registry"], known)

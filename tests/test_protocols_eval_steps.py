@@ -5,6 +5,7 @@ schedule is its first reset (step 300 of the cpu preset's 3000, 3000 of the pape
 from __future__ import annotations
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 from baselines.trainer_settings import train_config
@@ -13,7 +14,7 @@ from protocols.run import CONFIG_DIR, plan, run_experiment
 from protocols.run_settings import method_settings, run_settings
 from protocols.train_loop import eval_steps
 from smgs.train import TrainConfig, from_dict
-from smgs.train.strategies import make_strategy
+from smgs.train.strategies import StrategyRun, start_strategy
 
 
 def _cells(*overrides: str) -> list[tuple[dict, list[float]]]:
@@ -27,7 +28,7 @@ def _cells(*overrides: str) -> list[tuple[dict, list[float]]]:
 
 def _resets(mc: dict) -> list[int]:
     cfg = from_dict(TrainConfig, mc)
-    return make_strategy(cfg.densify, 1.0, 0.1, seed=0, device="cpu").reset_steps(cfg.steps)
+    return start_strategy(cfg.densify, StrategyRun(1.0, "3dgs", 0, torch.device("cpu"))).reset_steps(cfg.steps)
 
 
 @pytest.mark.parametrize("protocol", ["cpu", "paper"])

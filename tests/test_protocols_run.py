@@ -188,12 +188,16 @@ def test_seeds_n_and_per_method_seeds():
 
 def test_the_popping_ratio_is_left_out_with_why_where_its_maps_are_not_made():
     """eval.popping_ratio: auto renders the leading-splat maps where the renderer makes them (not on
-    a CUDA device), on forces them, off never; a method without render_leaders is named."""
+    a CUDA device but with the opt-in kernels), on forces them, off never; a method without
+    render_leaders is named."""
     from types import SimpleNamespace
 
     import torch
 
-    from protocols.train_loop import _no_popping_ratio
+    from protocols.train_loop import _no_popping_ratio as why
+    from smgs.raster import Renderer
+
+    _no_popping_ratio = lambda m, e, d: why(m, e, d, Renderer(kernels="default"))  # noqa: E731
 
     class WithMaps:
         name = "m"
@@ -207,7 +211,9 @@ def test_the_popping_ratio_is_left_out_with_why_where_its_maps_are_not_made():
     ev = lambda v: SimpleNamespace(popping_ratio=v)  # noqa: E731
     cpu, cuda = torch.device("cpu"), torch.device("cuda:0")
     assert _no_popping_ratio(WithMaps(), ev("auto"), cpu) == ""
-    assert "CUDA" in _no_popping_ratio(WithMaps(), ev("auto"), cuda)
+    assert "renderer cuda (kernels default, glue verified) has no leading-splat kernel" in \
+        _no_popping_ratio(WithMaps(), ev("auto"), cuda)
+    assert why(WithMaps(), ev("auto"), cuda, Renderer(kernels="v2")) == ""
     assert _no_popping_ratio(WithMaps(), ev("on"), cuda) == ""
     assert _no_popping_ratio(WithMaps(), ev("off"), cpu) == "eval.popping_ratio=off"
     assert "'plugin'" in _no_popping_ratio(Without(), ev("on"), cpu)

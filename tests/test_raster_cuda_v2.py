@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from smgs import Camera
-from smgs.raster import MODES, rasterize
+from smgs.raster import MODES, Renderer, rasterize
 from smgs.raster import constants as K
 from smgs.raster.composite_inputs import Splats2D, composite_settings
 
@@ -31,7 +31,8 @@ from test_raster_cuda import (GRAD_RTOL32, KEYS, OUT_ATOL32, OUT_ATOL64, GRAD_RT
                               assert_same, check_stiff_battery, random_scene, render_and_grad)
 
 DEV = "cuda"
-V2 = dict(cuda_kernels="v2")
+V2 = Renderer("cuda", kernels="v2")            # the opt-in kernels
+DEFAULT = Renderer("cuda", kernels="default")   # the default kernels, whatever SMGS_CUDA_KERNELS says
 
 
 def test_v2_builds_and_its_constants_mirror_the_default():
@@ -47,8 +48,8 @@ def test_v2_builds_and_its_constants_mirror_the_default():
 def test_v2_matches_reference_and_default_kernels(mode, k_max, scope):
     sc = random_scene(40, W, H, seed=k_max)
     kw = dict(k_max=k_max, background=torch.tensor([0.2, 0.5, 0.9]), k_max_scope=scope)
-    ov, gv = render_and_grad(sc, W, H, "cuda", mode, device=DEV, **kw, **V2)
-    od, gd = render_and_grad(sc, W, H, "cuda", mode, device=DEV, **kw, cuda_kernels="default")
+    ov, gv = render_and_grad(sc, W, H, V2, mode, device=DEV, **kw)
+    od, gd = render_and_grad(sc, W, H, DEFAULT, mode, device=DEV, **kw)
     orf, gr = render_and_grad(sc, W, H, "reference", mode, **kw)
     assert ov.stats.n_contrib.max() > 2
     assert ov.stats.pairs_evaluated == od.stats.pairs_evaluated   # the same tile lists
@@ -64,8 +65,8 @@ def test_v2_crowded_tiles(mode, k_max, scope):
     sc = random_scene(700, 40, 30, seed=3)
     sc["opacities"] = 0.3 + 0.6 * sc["opacities"]
     kw = dict(k_max=k_max, k_max_scope=scope)
-    ov, gv = render_and_grad(sc, 40, 30, "cuda", mode, device=DEV, **kw, **V2)
-    od, gd = render_and_grad(sc, 40, 30, "cuda", mode, device=DEV, **kw, cuda_kernels="default")
+    ov, gv = render_and_grad(sc, 40, 30, V2, mode, device=DEV, **kw)
+    od, gd = render_and_grad(sc, 40, 30, DEFAULT, mode, device=DEV, **kw)
     orf, gr = render_and_grad(sc, 40, 30, "reference", mode, **kw)
     assert orf.stats.n_contrib.max() > 20
     assert_same(ov, gv, orf, gr, 2 * OUT_ATOL32, 2 * GRAD_RTOL32)
@@ -80,7 +81,7 @@ def test_v2_general_channel_path(mode, n_ch, n_reg, scope):
     three float4)."""
     sc = random_scene(30, W, H, seed=5, n_ch=n_ch, n_reg=n_reg)
     kw = dict(k_max=3, eq15="printed", reg_depth_scale=0.7, background=torch.rand(n_ch), k_max_scope=scope)
-    ov, gv = render_and_grad(sc, W, H, "cuda", mode, device=DEV, **kw, **V2)
+    ov, gv = render_and_grad(sc, W, H, V2, mode, device=DEV, **kw)
     orf, gr = render_and_grad(sc, W, H, "reference", mode, **kw)
     assert ov.rgb.shape == (H, W, n_ch) and ov.reg.shape == (H, W, 1 + 2 * n_reg)
     assert_same(ov, gv, orf, gr, OUT_ATOL32, GRAD_RTOL32)
@@ -89,7 +90,7 @@ def test_v2_general_channel_path(mode, n_ch, n_reg, scope):
 @pytest.mark.parametrize("mode", ["softmax_only", "softmax_gs"])
 def test_v2_k_max_zero_is_all_vanilla(mode):
     sc = random_scene(25, 20, 18, seed=2)
-    ov, gv = render_and_grad(sc, 20, 18, "cuda", mode, device=DEV, k_max=0, **V2)
+    ov, gv = render_and_grad(sc, 20, 18, V2, mode, device=DEV, k_max=0)
     orf, gr = render_and_grad(sc, 20, 18, "reference", mode, k_max=0)
     assert_same(ov, gv, orf, gr, OUT_ATOL32, GRAD_RTOL32)
 
@@ -98,7 +99,7 @@ def test_v2_k_max_zero_is_all_vanilla(mode):
 def test_v2_float32_close_to_reference_float64(mode):
     sc = random_scene(30, W, H, seed=11, n_ch=3, n_reg=1)
     bg = torch.tensor([0.1, 0.0, 0.4])
-    ov, gv = render_and_grad(sc, W, H, "cuda", mode, device=DEV, k_max=4, background=bg, **V2)
+    ov, gv = render_and_grad(sc, W, H, V2, mode, device=DEV, k_max=4, background=bg)
     o64, g64 = render_and_grad(sc, W, H, "reference", mode, dtype=torch.float64, k_max=4, background=bg)
     assert_same(ov, gv, o64, g64, OUT_ATOL64, GRAD_RTOL64)
 
@@ -107,7 +108,7 @@ def test_v2_float32_close_to_reference_float64(mode):
 @pytest.mark.parametrize("mode", ["3dgs", "softmax_gs"])
 def test_v2_t_min_variant(mode):
     sc = random_scene(300, 40, 30, seed=6)
-    ov, gv = render_and_grad(sc, 40, 30, "cuda", mode, device=DEV, k_max=4, t_min=0.05, **V2)
+    ov, gv = render_and_grad(sc, 40, 30, V2, mode, device=DEV, k_max=4, t_min=0.05)
     orf, gr = render_and_grad(sc, 40, 30, "reference", mode, k_max=4, t_min=0.05)
     assert 0.9 < orf.alpha.max() <= 0.95 + 1e-5
     assert_same(ov, gv, orf, gr, 2 * OUT_ATOL32, 2 * GRAD_RTOL32)
@@ -118,9 +119,9 @@ def test_v2_persistent_grid_of_one_block_gives_the_same_gradients(monkeypatch):
     from smgs.raster import cuda_v2
 
     sc = random_scene(80, 70, 50, seed=4)
-    o1, g1 = render_and_grad(sc, 70, 50, "cuda", "softmax_gs", device=DEV, k_max=5, **V2)
+    o1, g1 = render_and_grad(sc, 70, 50, V2, "softmax_gs", device=DEV, k_max=5)
     monkeypatch.setattr(cuda_v2, "HEAD_BUDGET_BYTES", 1)
-    o2, g2 = render_and_grad(sc, 70, 50, "cuda", "softmax_gs", device=DEV, k_max=5, **V2)
+    o2, g2 = render_and_grad(sc, 70, 50, V2, "softmax_gs", device=DEV, k_max=5)
     assert torch.equal(o1.rgb, o2.rgb)
     plan = cuda_v2.extension().backward_plan(3, 70, 50, True, True, 5, 1)
     assert plan[0] == 1 and plan[1] >= 1
@@ -144,8 +145,7 @@ def test_v2_radii_leave_rows_out():
     kept = {k: sc[k][keep].to(DEV).clone().requires_grad_(True) for k in KEYS}
     from smgs.raster import rasterize_splats
 
-    ref = rasterize_splats(*[kept[k] for k in KEYS], W, H, mode="softmax_gs", k_max=4, backend="cuda",
-                           cuda_kernels="default")
+    ref = rasterize_splats(*[kept[k] for k in KEYS], W, H, mode="softmax_gs", k_max=4, backend=DEFAULT)
     (ref.rgb.sum() + ref.alpha.sum()).backward()
     assert torch.equal(out.stats.n_contrib, ref.stats.n_contrib)
     torch.testing.assert_close(out.rgb, ref.rgb, rtol=0, atol=OUT_ATOL32)
@@ -161,7 +161,7 @@ def test_v2_no_visible_splat_gives_the_background_and_zero_gradients():
         sc = {k: v[:n] for k, v in sc.items()}
         sc["means2d"] = sc["means2d"] + 100.0
         bg = torch.tensor([0.2, 0.4, 0.6])
-        o, g = render_and_grad(sc, 10, 8, "cuda", "softmax_gs", device=DEV, background=bg, **V2)
+        o, g = render_and_grad(sc, 10, 8, V2, "softmax_gs", device=DEV, background=bg)
         torch.testing.assert_close(o.rgb.cpu(), bg.expand(8, 10, 3), rtol=0, atol=0)
         assert (o.alpha == 0).all() and o.stats.n_contrib.sum() == 0
         for k in KEYS:
@@ -198,12 +198,12 @@ def _run3d(params, cam, mode, sh_degree, backend, device, **kw):
 @pytest.mark.parametrize("sh_degree", [1, 3])
 @pytest.mark.parametrize("mode", MODES)
 def test_fused_3d_path_matches_reference(mode, sh_degree):
-    """rasterize(..., cuda_kernels="v2"): fused projection and SH, then the v2 compositing, against
+    """rasterize(..., backend=Renderer("cuda", kernels="v2")): fused projection and SH, then the v2 compositing, against
     the reference pipeline on the CPU (the bounds of test_rasterize_3d_cuda_matches_reference)."""
     cam = Camera.look_at(eye=[0.0, 0.0, -4.0], target=[0.0, 0.0, 0.0], up=[0.0, -1.0, 0.0], fx=40.0, fy=40.0,
                          width=40, height=30)
     params = _params3d(50, 3, (sh_degree + 1) ** 2)
-    ov, gv = _run3d(params, cam, mode, sh_degree, "cuda", DEV, **V2)
+    ov, gv = _run3d(params, cam, mode, sh_degree, V2, DEV)
     orf, gr = _run3d(params, cam, mode, sh_degree, "reference", "cpu")
     assert orf.stats.n_contrib.max() > 3
     torch.testing.assert_close(ov.rgb.cpu(), orf.rgb, rtol=0, atol=4 * OUT_ATOL32)
@@ -286,7 +286,7 @@ def test_v2_per_pixel_order_and_leaders_match_the_cpu_window(mode, scope):
     sc, rd = _pixel_inputs(300, 7)
     rd_dev = RayDepth(rd.coefs.to(DEV), rd.fx, rd.fy, rd.cx, rd.cy)
     kw = dict(k_max=4, background=torch.tensor([0.2, 0.5, 0.9]), k_max_scope=scope, leaders=True)
-    ov, gv = render_and_grad(sc, 40, 30, "cuda", mode, device=DEV, ray_depth=rd_dev, **kw, **V2)
+    ov, gv = render_and_grad(sc, 40, 30, V2, mode, device=DEV, ray_depth=rd_dev, **kw)
     oc, gc = render_and_grad(sc, 40, 30, "cpu", mode, ray_depth=rd, **kw)
     assert ov.rgb.device.type == "cuda" and oc.stats.n_contrib.max() > 4
     assert torch.equal(ov.leaders.cpu(), oc.leaders)
@@ -297,16 +297,16 @@ def test_v2_per_pixel_order_and_leaders_match_the_cpu_window(mode, scope):
 @pytest.mark.parametrize("mode", ["3dgs", "softmax_gs"])
 def test_v2_leaders_in_the_global_order_match_the_cpu(mode):
     sc, _ = _pixel_inputs(300, 8)
-    ov, gv = render_and_grad(sc, 40, 30, "cuda", mode, device=DEV, k_max=4, leaders=True, **V2)
+    ov, gv = render_and_grad(sc, 40, 30, V2, mode, device=DEV, k_max=4, leaders=True)
     oc, gc = render_and_grad(sc, 40, 30, "cpu", mode, k_max=4, leaders=True)
-    od, _ = render_and_grad(sc, 40, 30, "cuda", mode, device=DEV, k_max=4, cuda_kernels="default")
+    od, _ = render_and_grad(sc, 40, 30, DEFAULT, mode, device=DEV, k_max=4)
     assert torch.equal(ov.leaders.cpu(), oc.leaders) and (ov.leaders >= 0).any()
     assert torch.equal(ov.stats.n_contrib.cpu(), od.stats.n_contrib.cpu())   # the global order's
     assert_same(ov, gv, oc, gc, OUT_ATOL32, GRAD_RTOL32)
 
 
 def test_v2_per_pixel_order_stays_on_the_gpu(monkeypatch):
-    """auto with cuda_kernels="v2" renders sort="per_pixel" on the GPU: no host copies."""
+    """auto with kernels="v2" renders sort="per_pixel" on the GPU: no host copies."""
     from smgs.raster import api
 
     def no_host(*a, **k):
@@ -319,7 +319,7 @@ def test_v2_per_pixel_order_stays_on_the_gpu(monkeypatch):
     p = {k: v.to(DEV) for k, v in params.items()}
     out = rasterize(p["means3d"], p["quats"], p["scales"], p["opacities"], p["sh"], cam, alpha=p["alpha"],
                     beta=p["beta"], gamma=p["gamma"], mode="softmax_gs", sh_degree=0, sort="per_pixel", leaders=True,
-                    **V2)
+                    backend=Renderer(kernels="v2"))
     assert out.rgb.device.type == "cuda" and out.leaders.device.type == "cuda"
     assert (out.leaders < params["means3d"].shape[0]).all()
 

@@ -16,7 +16,7 @@ from cuda_v2_standin import CSRC, LAYOUT, PYTYPE, StandInCompositing, StandInPro
 
 from smgs.camera import Camera
 from smgs.raster import constants as K
-from smgs.raster import cuda_v2, rasterize, rasterize_splats
+from smgs.raster import Renderer, cuda_v2, rasterize, rasterize_splats
 from smgs.raster.composite_inputs import Splats2D, composite_settings
 from smgs.raster.types import MODES
 
@@ -106,17 +106,20 @@ def test_bindings_signatures_and_pybind_names_agree():
     assert len(returned((CSRC / "projection_cuda_binding.cpp").read_text(), "project_forward_torch")) == 6
 
 
-def test_kernel_choice_reads_the_argument_then_the_environment(monkeypatch):
-    monkeypatch.delenv(cuda_v2.KERNELS_ENV, raising=False)
-    assert cuda_v2.kernel_choice(None) == "default"
-    assert cuda_v2.kernel_choice("v2") == "v2"
-    monkeypatch.setenv(cuda_v2.KERNELS_ENV, "v2")
-    assert cuda_v2.kernel_choice(None) == "v2" and cuda_v2.kernel_choice("default") == "default"
-    monkeypatch.setenv(cuda_v2.KERNELS_ENV, "v3")
-    with pytest.raises(ValueError, match="SMGS_CUDA_KERNELS='v3'.*default, v2"):
-        cuda_v2.kernel_choice(None)
-    with pytest.raises(ValueError, match="cuda_kernels='fast'"):
-        cuda_v2.kernel_choice("fast")
+def test_the_kernels_are_the_asked_ones_then_the_environments(monkeypatch):
+    from smgs.raster.backends import KERNELS_ENV, Renderer, variant
+
+    monkeypatch.delenv(KERNELS_ENV, raising=False)
+    assert variant(Renderer(), "cuda").kernels == "default"
+    assert variant(Renderer(kernels="v2"), "cuda").kernel_set.fused == "smgs.raster.cuda_v2:rasterize_fused"
+    monkeypatch.setenv(KERNELS_ENV, "v2")
+    assert variant(Renderer(), "cuda").kernels == "v2" and variant(Renderer(kernels="default"), "cuda").kernels == "default"
+    assert variant(Renderer(), "cpu").describe() == "cpu"    # a backend without kernel sets reads no variable
+    monkeypatch.setenv(KERNELS_ENV, "v3")
+    with pytest.raises(ValueError, match="SMGS_CUDA_KERNELS='v3' names no cuda kernels variant; expected one of default, v2"):
+        variant(Renderer(), "cuda")
+    with pytest.raises(ValueError, match="kernels='fast' names no kernels variant of any renderer backend"):
+        Renderer("cuda", kernels="fast")
 
 
 def test_v2_applies_only_where_the_cuda_backend_renders(monkeypatch):
@@ -126,7 +129,7 @@ def test_v2_applies_only_where_the_cuda_backend_renders(monkeypatch):
     kw = dict(mode="3dgs", backend="reference")
     a = rasterize(sc["means3d"], sc["quats"], sc["scales"], sc["opacities"], sc["colors_or_sh"], cam, **kw)
     b = rasterize(sc["means3d"], sc["quats"], sc["scales"], sc["opacities"], sc["colors_or_sh"], cam,
-                  cuda_kernels="v2", **kw)
+                  **{**kw, "backend": Renderer("reference", kernels="v2")})
     assert torch.equal(a.rgb, b.rgb) and torch.equal(a.extras["ids"], b.extras["ids"])
 
 
@@ -194,4 +197,5 @@ def test_per_pixel_order_on_the_cuda_kernels_with_reg_values_is_refused_naming_t
     rd = RayDepth(coefs=torch.zeros(n, 9), fx=10.0, fy=10.0, cx=5.0, cy=5.0)
     with pytest.raises(ValueError, match="per_pixel' on the CUDA kernels takes no reg_values"):
         rasterize_splats(z(n, 2) * 8, torch.tensor([[1.0, 0.0, 1.0]] * n), z(n) * 0.5, z(n, 3), z(n) + 1, z(n), z(n),
-                         z(n), 8, 8, mode="3dgs", backend="cuda", cuda_kernels="v2", ray_depth=rd, reg_values=z(n, 2))
+                         z(n), 8, 8, mode="3dgs", backend=Renderer("cuda", kernels="v2"), ray_depth=rd,
+                         reg_values=z(n, 2))

@@ -1,4 +1,4 @@
-"""The fused v2 path (``rasterize(..., cuda_kernels="v2")``) on a stand-in device (tests/device_mix.py):
+"""The fused v2 path (``rasterize(..., backend=Renderer(kernels="v2"))``) on a stand-in device (tests/device_mix.py):
 no operator mixes the host camera with the device's tensors, and the host synchronisations of one
 forward and one backward are counted: the binding's pair count is the only one of its own (the
 projection adds none: no ``nonzero``, no camera copies), the backward has none without softmax and
@@ -9,14 +9,32 @@ bindings are the stand-ins of tests/cuda_v2_standin.py, run on the host values o
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 from cuda_v2_standin import OnHost, StandInCompositing, StandInProjection
 from device_mix import CPU, OTHER, simulated_gpu
 
 from smgs.camera import Camera
-from smgs.raster import cuda_v2, projection_cuda, rasterize
+from smgs.raster import Renderer, cuda_v2, projection_cuda, rasterize
 from smgs.raster.types import MODES, mode_flags
+
+
+def _lean_camera() -> Camera:
+    return Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
+
+
+@contextlib.contextmanager
+def _lean_v2(monkeypatch):
+    """The v2 kernels under the lean glue on the stand-in device: (its counts, the compositing)."""
+    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
+    with simulated_gpu(monkeypatch) as m:
+        proj = OnHost(StandInProjection(), m)
+        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
+        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
+        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+        yield m, comp
 
 
 def _splats(n: int, device, sh: bool) -> dict[str, torch.Tensor]:
@@ -57,7 +75,7 @@ def test_fused_path_on_another_device_keeps_the_camera_on_the_host_and_syncs_onc
         monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
         s = _splats(60, OTHER, sh)
         box = {}
-        n_fwd, where_fwd = _counted(m, lambda: box.update(out=_render(s, cam, mode, sh, cuda_kernels="v2")))
+        n_fwd, where_fwd = _counted(m, lambda: box.update(out=_render(s, cam, mode, sh, backend=Renderer(kernels="v2"))))
         out = box["out"]
         n_bwd, where_bwd = _counted(m, lambda: (out.rgb.mean() + out.depth.mean()).backward())
         assert proj.base.calls == ["project_forward_torch", "project_backward_torch"]
@@ -93,19 +111,14 @@ def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_not
     no launch of its own); a bad Gaussian is culled there, so the compositing renders nothing of it
     (a NaN splat's box is the whole image), and the flag, copied before the compositing's one wait,
     is read after it: the same error as the verified glue's, naming the input."""
-    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
-    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
-    with simulated_gpu(monkeypatch) as m:
-        proj = OnHost(StandInProjection(), m)
-        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
-        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
-        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+    cam = _lean_camera()
+    with _lean_v2(monkeypatch) as (m, comp):
         s = _splats(60, OTHER, sh=True)
         with torch.no_grad():
             s[name][at] = value
         m.reset()
         with pytest.raises(ValueError, match=message):
-            _render(s, cam, "softmax_gs", True, cuda_kernels="v2")
+            _render(s, cam, "softmax_gs", True, backend=Renderer(kernels="v2"))
         assert m.counts["binding forward: the pair count"] == 1     # rendered, then refused
         # the flag went to the host without a wait and rode on the pair count's; only the naming
         # after it (checks.finite's exact count, the error path) reads the device again
@@ -119,15 +132,10 @@ def test_the_lean_glue_checks_the_fused_inputs_in_the_projection_and_renders_not
 
 def test_the_lean_glue_renders_an_infinite_gamma_without_complaint(monkeypatch):
     """γ = +inf is valid (a hard depth decay): the kernel's check lets it through."""
-    monkeypatch.setenv("SMGS_CUDA_GLUE", "lean")
-    cam = Camera.look_at([0.1, -0.2, -1.0], [0, 0, 3], [0, -1, 0], 40.0, 42.0, 24, 18)
-    with simulated_gpu(monkeypatch) as m:
-        proj = OnHost(StandInProjection(), m)
-        comp = OnHost(StandInCompositing(), m, "binding forward: the pair count")
-        monkeypatch.setattr(projection_cuda, "extension", lambda: proj)
-        monkeypatch.setattr(cuda_v2, "extension", lambda t_min=None: comp)
+    cam = _lean_camera()
+    with _lean_v2(monkeypatch) as (m, comp):
         s = _splats(60, OTHER, sh=False)
         with torch.no_grad():
             s["gamma"][:5] = float("inf")
-        out = _render(s, cam, "softmax_gs", False, cuda_kernels="v2")
+        out = _render(s, cam, "softmax_gs", False, backend=Renderer(kernels="v2"))
         assert (comp.base.saved["v"]["radii"][5:10] != 0).any() and torch.isfinite(out.rgb.cpu()).all()

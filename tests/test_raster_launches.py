@@ -1,7 +1,7 @@
 """Launches and host waits of one render's forward and one backward, per path and mode, held to
 budgets: counted without a GPU on the stand-in device (tests/device_mix.py), the compiled bindings
 stood in for (tests/cuda_standin.py, tests/cuda_v2_standin.py). A GPU's host pays for each launch
-(~5-25 us of Python and driver time; docs/overhead.md) and each wait drains the GPU's queue, so these
+(~5-25 us of Python and driver time; docs/results/overhead.md) and each wait drains the GPU's queue, so these
 counts are the floor of a small scene's time (gsplat: ~15-30 launches and one wait per forward).
 
 ``launches`` are the operators on device tensors that run a kernel or a copy (views and bare
@@ -21,8 +21,7 @@ from device_mix import OTHER, simulated_gpu
 
 from smgs import Camera
 from smgs.raster import cuda_v2, projection_cuda, rasterize
-from smgs.raster.cuda_v2 import KERNELS_ENV
-from smgs.raster.device_glue import GLUE_ENV
+from smgs.raster.backends import GLUE_ENV, KERNELS_ENV
 
 PATHS = {"default": {}, "lean glue": {GLUE_ENV: "lean"}, "v2": {KERNELS_ENV: "v2"},
          "v2 + lean glue": {KERNELS_ENV: "v2", GLUE_ENV: "lean"}}

@@ -27,7 +27,7 @@ from device_mix import OTHER, simulated_gpu
 import smgs.raster.cuda as cuda_backend
 from smgs import Camera
 from smgs.raster import rasterize
-from smgs.raster.device_glue import GLUE_ENV
+from smgs.raster.backends import GLUE_ENV
 from smgs.raster.types import MODES, mode_flags
 
 
@@ -158,9 +158,11 @@ def test_the_lean_glue_names_a_bad_input_after_the_render(monkeypatch):
 
 
 def test_an_unknown_glue_is_refused(monkeypatch):
-    from smgs.raster.device_glue import lean
+    from smgs.raster.backends import Renderer, variant
 
     monkeypatch.setenv(GLUE_ENV, "fast")
-    with pytest.raises(ValueError, match=r"SMGS_CUDA_GLUE='fast'; expected one of verified, lean"):
-        lean(torch.device("cuda"))
-    assert lean(torch.device("cpu")) is False     # the CPU never takes it (nothing there waits)
+    with pytest.raises(ValueError, match=r"SMGS_CUDA_GLUE='fast' names no cuda glue variant; expected one of verified, lean"):
+        variant(Renderer(), "cuda")
+    monkeypatch.setenv(GLUE_ENV, "lean")
+    assert variant(Renderer(), "cuda").lean(torch.device("cuda"))
+    assert not variant(Renderer(), "cuda").lean(torch.device("cpu"))   # the CPU never takes it (nothing there waits)

@@ -13,11 +13,11 @@ from smgs.raster.projection import quat_to_rotmat
 from smgs.train import GaussianConfig, Gaussians, TrainConfig, densify_config, from_dict, pattern_config, to_dict
 from smgs.train.strategies.mcmc import MCMCStrategy, noise_gate, position_noise, relocation
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategies import make_strategy
-from smgs.train.strategies import DefaultStrategy
+from smgs.train.strategies import DefaultStrategy, StrategyRun, start_strategy
 from smgs.train.trainer import Trainer
 
 F64 = torch.float64
+RUN = StrategyRun(1.0, "3dgs", 0, torch.device("cpu"))
 
 
 # -- the relocation formula ------------------------------------------------------------------
@@ -90,7 +90,7 @@ def _gaussians(opacities: list[float]) -> tuple[Gaussians, GaussianOptimizer]:
 
 
 def _mcmc(**over) -> MCMCStrategy:
-    return MCMCStrategy(densify_config("mcmc", **{"cap": 100, "refine_start": 0, "refine_every": 1, **over}), device="cpu")
+    return densify_config("mcmc", **{"cap": 100, "refine_start": 0, "refine_every": 1, **over}).start(RUN)
 
 
 def test_relocation_moves_dead_onto_live_and_resets_their_adam_moments():
@@ -182,7 +182,7 @@ def test_loss_has_the_l1_regularisers():
     c = tr.cfg.densify
     expected = c.mcmc_opacity_reg * g.opacities.mean() + c.mcmc_scale_reg * g.scales.mean()
     torch.testing.assert_close(tr.strategy.regularizer(1, g), expected)
-    off = MCMCStrategy(densify_config("mcmc", cap=4, mcmc_opacity_reg=0.0, mcmc_scale_reg=0.0), device="cpu")
+    off = densify_config("mcmc", cap=4, mcmc_opacity_reg=0.0, mcmc_scale_reg=0.0).start(RUN)
     assert off.regularizer(1, g) is None
 
 
@@ -217,7 +217,7 @@ def test_resume_mid_run_matches_an_uninterrupted_run():
 
 def test_checkpoint_of_another_strategy_is_refused():
     tr = _trainer()
-    default = DefaultStrategy(densify_config("full"), 1.0, 0.1, device="cpu")
+    default = densify_config("full").start(RUN)
     with pytest.raises(ValueError, match="'default'.*this run uses 'mcmc'"):
         tr.strategy.load_state_dict(default.state_dict())
     with pytest.raises(ValueError, match="'mcmc'.*this run uses 'default'"):
@@ -227,9 +227,9 @@ def test_checkpoint_of_another_strategy_is_refused():
 # -- configs ---------------------------------------------------------------------------------
 
 def test_configs_pick_the_strategy():
-    assert isinstance(make_strategy(densify_config("full"), 1.0, 0.1, device="cpu"), DefaultStrategy)
-    st = make_strategy(densify_config("mcmc", cap=50), 1.0, 0.1, device="cpu")
-    assert isinstance(st, MCMCStrategy) and st.cfg.reset_every is None and st.cfg.refine_stop == 25_000
+    assert isinstance(start_strategy(densify_config("full"), RUN), DefaultStrategy)
+    st = start_strategy(densify_config("mcmc", cap=50), RUN)
+    assert isinstance(st, MCMCStrategy) and st.reset_every is None and st.refine_stop == 25_000
     with pytest.raises(ValueError, match="budget 'mcmc' needs cap"):
         densify_config("mcmc")
     with pytest.raises(ValueError, match="unknown densification strategy 'gsplat'"):

@@ -5,7 +5,7 @@ import torch
 from smgs.train import GaussianConfig, densify_config, hparams
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, inverse_sigmoid
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
+from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, StrategyRun
 
 EXTENT = 2.0
 
@@ -18,8 +18,8 @@ def _case(scales, opacities, grads, cap=None, size_prune=SIZE_PRUNE_3DGS, **kw):
     with torch.no_grad():
         g.params["opacities"].copy_(inverse_sigmoid(torch.tensor(opacities)))
     opt = GaussianOptimizer(g, hparams("3dgs2023+softmaxgs_real"), EXTENT, 100)
-    cfg = densify_config("cap" if cap else "full", cap=cap, **kw)
-    st = DefaultStrategy(cfg, EXTENT, size_prune, seed=0, device="cpu")
+    cfg = densify_config("cap" if cap else "full", cap=cap, size_prune=size_prune, **kw)
+    st = cfg.start(StrategyRun(EXTENT, "3dgs", 0, torch.device("cpu")))
     st._ensure(n)
     st.grad2d = torch.tensor(grads, dtype=torch.float32)
     st.count = torch.ones(n)

@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> dict:
                 keep = g.opacities >= d.prune_opacity
                 px = math.inf if d.prune_screen_px is None else d.prune_screen_px
                 screen = (strat.max_radii > px) & keep
-                world = (g.scales.max(dim=1).values > strat.size_prune * strat.extent) & keep & ~screen
+                world = (g.scales.max(dim=1).values > strat.size_limit * strat.extent) & keep & ~screen
                 big["screen"] += int(screen.sum())
                 big["world"] += int(world.sum())
         return original(g, opt, prune_big)

@@ -18,14 +18,13 @@ Listing never imports an entry's module; it is imported when the entry is used.
 from __future__ import annotations
 
 import dataclasses
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 from smgs.data.datasets import DatasetSpec
 from smgs.data.formats import SceneFormat, SceneRequest, check_scene_with, format_fields, make_scene
 from smgs.data.scene import Scene
-from smgs.plugins import entry_points, load_target, source_of
+from smgs.plugins import Registry
 
 ENTRY_POINT_GROUP = "smgs.datasets"
 
@@ -42,48 +41,35 @@ BUILTIN_DATASETS: dict[str, str] = {
 }
 BUILTINS: dict[str, str] = {**BUILTIN_FORMATS, **BUILTIN_DATASETS}
 
-_registered: dict[str, Any] = {}
+_REGISTRY = Registry(ENTRY_POINT_GROUP, BUILTINS, "scene format or dataset")
 
 
 def register(name: str, entry: type | DatasetSpec, overwrite: bool = False) -> None:
     """Register a scene format class or a benchmark dataset in this process (tests, notebooks);
     it overrides a built-in or plugin of that name."""
-    if name in _registered and not overwrite:
-        raise ValueError(f"scene format or dataset {name!r} is already registered")
-    _registered[name] = entry
+    _REGISTRY.register(name, entry, overwrite)
 
 
 def unregister(name: str) -> None:
-    _registered.pop(name, None)
-
-
-def _entry_points() -> dict[str, metadata.EntryPoint]:
-    return entry_points(ENTRY_POINT_GROUP, BUILTINS, "plugin scene format")
+    _REGISTRY.unregister(name)
 
 
 def list_names() -> list[str]:
     """Every scene format and benchmark dataset name known here (built-ins, registered, plugins)."""
-    return sorted(set(BUILTINS) | set(_registered) | set(_entry_points()))
+    return _REGISTRY.names()
 
 
 def plugin_source(name: str) -> str | None:
     """``plugin <distribution>`` for an entry from the entry-point group, None for the others."""
-    if name in _registered or name in BUILTINS:
-        return None
-    ep = _entry_points().get(name)
-    return None if ep is None else source_of(ep)
+    return _REGISTRY.plugin_source(name)
 
 
 def get(name: str) -> Any:
     """The entry registered as ``name`` (imported now); a KeyError lists the known names."""
-    if name in _registered:
-        return _registered[name]
-    if name in BUILTINS:
-        return load_target(BUILTINS[name], "scene format")
-    ep = _entry_points().get(name)
-    if ep is not None:
-        return ep.load()
-    raise KeyError(f"unknown scene format or dataset {name!r}; known: {', '.join(list_names())}")
+    try:
+        return _REGISTRY.get(name)
+    except KeyError:
+        raise KeyError(f"unknown scene format or dataset {name!r}; known: {', '.join(list_names())}") from None
 
 
 def get_dataset(name: str) -> DatasetSpec:

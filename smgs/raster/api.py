@@ -1,39 +1,26 @@
-"""Public entry points of the renderer and the choice of backend."""
+"""Public entry points of the renderer: choosing a backend and its variant (``smgs.raster.backends``,
+the one registry) and calling it."""
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from typing import Callable
 
 import torch
 
 from smgs.camera import Camera
+from smgs.plugins import load_target
 from smgs.raster import checks
 from smgs.raster import constants as K
+from smgs.raster.backends import BACKEND_NAMES, BACKENDS, Renderer, Variant, as_renderer, variant
 from smgs.raster.composite_inputs import CompositeSettings, Splats2D, composite_settings
-from smgs.raster.cuda_v2 import kernel_choice
-from smgs.raster.device_glue import lean, to_device
+from smgs.raster.device_glue import to_device
 from smgs.raster.projection import ShColours, host_view, project_gaussians
 from smgs.raster.ray_depth import check_sort, ray_depth
 from smgs.raster.sh import num_sh_bases
 from smgs.raster.types import Eq15, KMaxScope, RayDepth, RenderOutput, RenderStats
 
-# name -> "module:function"; every backend is fn(Splats2D, CompositeSettings) -> RenderOutput
-# (smgs.raster.composite_inputs). Imported lazily so that listing backends never compiles or loads
-# a kernel.
-_BACKENDS: dict[str, str] = {
-    "reference": "smgs.raster.reference:rasterize_splats_reference",
-    "cpu": "smgs.raster.cpu:rasterize_splats_cpu",
-    "cuda": "smgs.raster.cuda:rasterize_splats_cuda",
-}
-
-
-def _load_backend(name: str) -> Callable[..., RenderOutput]:
-    if name not in _BACKENDS:
-        raise ValueError(f"unknown renderer backend {name!r}; expected 'auto' or one of {', '.join(_BACKENDS)}")
-    module, _, fn = _BACKENDS[name].partition(":")
-    return getattr(importlib.import_module(module), fn)
+__all__ = ["rasterize", "rasterize_splats", "backend_available", "resolve_backend", "BACKEND_NAMES", "Renderer"]
 
 
 def backend_available(name: str, device: torch.device | str,
@@ -41,24 +28,18 @@ def backend_available(name: str, device: torch.device | str,
     """Whether ``name`` can render tensors of this device and dtype here. A compiled backend whose
     toolchain is present but whose build fails raises ``smgs.raster.jit.BuildError`` (the cause and
     the fix) rather than answering False."""
+    spec = BACKENDS.get(name)
     device = torch.device(device)
-    if name == "reference":
+    if spec is None or (spec.device is not None and device.type != spec.device) \
+            or (spec.float32_only and dtype != torch.float32):
+        return False
+    if spec.available is None:
         return True
-    if name == "cpu":
-        if device.type != "cpu" or dtype != torch.float32:
-            return False
-        try:
-            from smgs.raster import cpu
-        except ImportError:
-            return False
-        return cpu.is_available()
-    if name == "cuda":
-        if device.type != "cuda" or dtype != torch.float32:
-            return False
-        from smgs.raster import cuda   # importing never touches CUDA
-
-        return cuda.is_available()
-    return False
+    try:
+        is_available = load_target(spec.available, "renderer backend")
+    except ImportError:
+        return False
+    return bool(is_available())
 
 
 def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype) -> str:
@@ -66,8 +47,8 @@ def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype
     to the reference only where a compiled backend lacks its toolchain or is switched off, never
     past a failed build (``BuildError``)."""
     if backend != "auto":
-        if backend not in _BACKENDS:
-            _load_backend(backend)  # raises the error that lists the backends
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown renderer backend {backend!r}; expected 'auto' or one of {', '.join(BACKENDS)}")
         if not backend_available(backend, device, dtype):
             raise RuntimeError(f"renderer backend {backend!r} cannot render {dtype} tensors on "
                                f"{torch.device(device)}; use backend='auto' or 'reference'")
@@ -78,7 +59,22 @@ def resolve_backend(backend: str, device: torch.device | str, dtype: torch.dtype
     return "reference"
 
 
-BACKEND_NAMES: tuple[str, ...] = tuple(_BACKENDS)
+def render_variant(backend: str | Renderer, device: torch.device | str, dtype: torch.dtype = torch.float32) -> Variant:
+    """The backend and variant a render of these tensors takes (``backends.variant`` of the backend
+    ``resolve_backend`` picks): what a result records."""
+    choice = as_renderer(backend)
+    return variant(choice, resolve_backend(choice.backend, device, dtype))
+
+
+def _lean(choice: Renderer, device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether the render takes the lean glue (``device_glue``): never on the CPU; elsewhere where the
+    backend it resolves to has that glue (one that cannot render here says so when it composites)."""
+    if device.type == "cpu":
+        return False
+    try:
+        return render_variant(choice, device, dtype).lean(device)
+    except (RuntimeError, ValueError):
+        return False
 
 
 def _mode_inputs(st: CompositeSettings, n: int, alpha, beta, gamma) -> list[tuple[str, torch.Tensor]]:
@@ -139,7 +135,7 @@ def _on_host(splats: Splats2D, st: CompositeSettings) -> RenderOutput:
     device = splats.means2d.device
     host = splats.mapped(lambda t: t.cpu())
     on_cpu = host.reg_values is None and backend_available("cpu", "cpu", host.means2d.dtype)
-    out = _composite(host, st, "cpu" if on_cpu else "reference", "default", checks.InputChecks())
+    out = _composite(host, st, Renderer("cpu" if on_cpu else "reference"), checks.InputChecks())
     if device.type == "cpu":
         return out
     move = lambda t: None if t is None else t.to(device)  # noqa: E731
@@ -163,7 +159,7 @@ def rasterize_splats(
     mode: str = "softmax_gs",
     k_max: int = K.DEFAULT_K_MAX,
     background: torch.Tensor | None = None,
-    backend: str = "auto",
+    backend: str | Renderer = "auto",
     eq15: Eq15 = "solved",
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
@@ -171,7 +167,6 @@ def rasterize_splats(
     ray_depth: RayDepth | None = None,
     leaders: bool = False,
     k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-    cuda_kernels: str | None = None,
 ) -> RenderOutput:
     """Composite already-projected 2D splats front to back (Algorithm 1 of Softmax-GS).
 
@@ -194,54 +189,71 @@ def rasterize_splats(
     are composited on host copies (cpu, else reference) and the outputs moved back. ``k_max_scope``:
     what the softmax head is (docs/kmax-scope.md): ``"pixel"``, each pixel's first k_max composited
     splats; ``"patch"``, the splats at positions < k_max of its 16x16 tile's depth-sorted list.
-    ``cuda_kernels``: which CUDA kernels composite where the cuda backend does (``"default"``, or the
-    opt-in ``"v2"``, docs/cuda.md); None reads ``$SMGS_CUDA_KERNELS`` (default ``"default"``). With
-    ``"v2"``, ``ray_depth`` and ``leaders`` on CUDA tensors run on the GPU (the CPU window's twin,
-    windows up to 32 splats, no ``reg_values``) instead of on host copies.
+    ``backend``: a backend's name (``auto``, ``reference``, ``cpu``, ``cuda``), or a
+    ``smgs.raster.Renderer`` that also names its variants (``smgs.raster.backends``): e.g.
+    ``Renderer("cuda", kernels="v2")``, the opt-in CUDA kernels (docs/cuda.md), with which
+    ``ray_depth`` and ``leaders`` on CUDA tensors run on the GPU (the CPU window's twin, windows up to
+    32 splats, no ``reg_values``) instead of on host copies; a variant left unset is its environment
+    variable's (``SMGS_CUDA_KERNELS``, ``SMGS_CUDA_GLUE``), else the default.
     """
-    kernels = kernel_choice(cuda_kernels)
+    choice = as_renderer(backend)
     st = composite_settings(width, height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope, leaders)
     splats = Splats2D(means2d, conics, opacities, colors, depths, alpha, beta, gamma, background, reg_values,
                       ray_depth)
-    return _composite(splats, st, backend, kernels, checks.InputChecks(defer=lean(means2d.device)))
+    lean = _lean(choice, means2d.device, means2d.dtype)
+    return _composite(splats, st, choice, checks.InputChecks(defer=lean))
 
 
-def _composite(splats: Splats2D, st: CompositeSettings, backend: str, kernels: str,
-               chk: checks.InputChecks) -> RenderOutput:
+def _composite(splats: Splats2D, st: CompositeSettings, choice: Renderer, chk: checks.InputChecks) -> RenderOutput:
     """``rasterize_splats`` with its settings made and its input checks in ``chk`` (``rasterize``
     adds the 3D inputs'): decided before the backend runs, or, deferred (the lean GPU glue), read
     right after it."""
     _check_inputs(splats, st, chk)
     if chk.defer:   # the lean glue: nothing of a bad input renders before the refusal (checks.InputChecks)
         splats = dataclasses.replace(splats, opacities=chk.gate(splats.opacities))
-    means2d, ray_depth = splats.means2d, splats.ray_depth
+    return _settled(chk, _compositor(splats, st, choice), splats, st)
+
+
+def _compositor(splats: Splats2D, st: CompositeSettings, choice: Renderer) -> Callable[..., RenderOutput]:
+    """The function that composites ``splats`` as ``choice`` asks: the global order through the
+    variant's compositing kernels; a per-pixel order or the leading-splat map through its pixel
+    kernels where it has them, else (``auto``'s per-pixel order) the CPU window or the reference,
+    else host copies (``_on_host``)."""
+    means2d, ray_depth, reg = splats.means2d, splats.ray_depth, splats.reg_values
     if ray_depth is not None:
         if ray_depth.coefs.shape != (splats.n, 9):
             raise ValueError(f"ray_depth.coefs must be [N,9] for the N={splats.n} splats, "
                              f"got {tuple(ray_depth.coefs.shape)}")
-        if backend == "cuda" and kernels != "v2":
-            raise ValueError("sort='per_pixel' has no CUDA kernel among the default ones; use the opt-in kernels "
-                             "(cuda_kernels='v2', docs/cuda.md), backend='reference' or 'auto'")
-        if backend == "cuda" and splats.reg_values is not None:
-            raise ValueError("sort='per_pixel' on the CUDA kernels takes no reg_values (the per-pixel order has no "
-                             "regulariser sums); drop reg_values, or use backend='reference'")
-    # the opt-in kernels order each pixel (and give the leading-splat map) on the GPU itself
-    pixel_on_gpu = (kernels == "v2" and (ray_depth is not None or st.leaders) and splats.reg_values is None
-                    and backend in ("auto", "cuda")
-                    and resolve_backend(backend, means2d.device, means2d.dtype) == "cuda")
-    if ray_depth is not None and backend == "auto" and not pixel_on_gpu:   # cpu, reference, or "host"
-        name = _per_pixel_backend(means2d.device, means2d.dtype, splats.reg_values)
-    else:
-        name = resolve_backend(backend, means2d.device, means2d.dtype)
-    if name == "host" or (st.leaders and name == "cuda" and not pixel_on_gpu):
-        fn = _on_host
-    else:
-        fn = _load_backend(name)
-    if pixel_on_gpu:
-        from smgs.raster.cuda_v2 import rasterize_splats_pixel_cuda as fn
-    elif name == "cuda" and kernels == "v2" and ray_depth is None and not st.leaders:
-        from smgs.raster.cuda_v2 import rasterize_splats_cuda_v2 as fn
-    return _settled(chk, fn, splats, st)
+        if choice.backend != "auto":
+            _check_pixel_kernels(variant(choice, choice.backend), reg)
+    name = resolve_backend(choice.backend, means2d.device, means2d.dtype)
+    v = variant(choice, name)
+    kernels = v.kernel_set
+    if ray_depth is None and not st.leaders:
+        return load_target(kernels.composite, "renderer kernels")
+    if kernels.pixel is not None and (reg is None or kernels.pixel_reg):
+        return load_target(kernels.pixel, "renderer kernels")
+    if ray_depth is not None and choice.backend == "auto":   # the CPU window (on host copies), or the reference
+        fallback = _per_pixel_backend(means2d.device, means2d.dtype, reg)
+        if fallback != "host":
+            return load_target(BACKENDS[fallback].kernels["default"].pixel, "renderer kernels")
+    elif v.spec.device == "cpu" and kernels.pixel is not None:   # it names reg_values itself
+        return load_target(kernels.pixel, "renderer kernels")
+    return _on_host
+
+
+def _check_pixel_kernels(v: Variant, reg_values: torch.Tensor | None) -> None:
+    """Refuse a per-pixel order that the backend asked for by name cannot render, naming the way out."""
+    kernels = v.kernel_set
+    if kernels.pixel is None:
+        others = [k for k, ks in v.spec.kernels.items() if ks.pixel is not None]
+        way = f"the kernels {', '.join(others)} (backend=Renderer({v.backend!r}, kernels={others[0]!r}), " \
+              "docs/cuda.md), " if others else ""
+        raise ValueError(f"sort='per_pixel' has no {v.backend.upper()} kernel among the {v.kernels} ones; use {way}"
+                         "backend='reference' or 'auto'")
+    if reg_values is not None and not kernels.pixel_reg and v.spec.device != "cpu":
+        raise ValueError(f"sort='per_pixel' on the {v.backend.upper()} kernels takes no reg_values (the per-pixel "
+                         "order has no regulariser sums); drop reg_values, or use backend='reference'")
 
 
 def _settled(chk: checks.InputChecks, fn: Callable[..., RenderOutput], *args, **kwargs) -> RenderOutput:
@@ -320,7 +332,7 @@ def rasterize(
     k_max: int = K.DEFAULT_K_MAX,
     sh_degree: int | None = None,
     background: torch.Tensor | None = None,
-    backend: str = "auto",
+    backend: str | Renderer = "auto",
     eq15: Eq15 = "solved",
     reg_values: torch.Tensor | None = None,
     reg_depth_scale: float = 1.0,
@@ -331,7 +343,6 @@ def rasterize(
     sort: str = "global",
     leaders: bool = False,
     k_max_scope: KMaxScope = K.DEFAULT_K_MAX_SCOPE,
-    cuda_kernels: str | None = None,
     sh_rest: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Render 3D Gaussians (activated values) through ``camera``.
@@ -350,13 +361,44 @@ def rasterize(
     order is not differentiated; the compositing and its gradients are those of the mode.
     ``leaders``: the output's ``leaders`` map too, as indices of the Gaussians given here
     (``rasterize_splats`` says how each backend renders it). ``k_max_scope``: ``"pixel"`` or
-    ``"patch"`` (``rasterize_splats``; docs/kmax-scope.md). ``cuda_kernels`` (as
-    ``rasterize_splats``): with ``"v2"`` a float32 CUDA render in the global order projects (and
-    evaluates SH) in one fused kernel without compaction, so the extras' ``ids`` are every Gaussian
-    and ``radii`` (0, 0) marks the culled ones (docs/cuda.md).
+    ``"patch"`` (``rasterize_splats``; docs/kmax-scope.md). ``backend`` (as ``rasterize_splats``): a
+    variant whose kernels render 3D Gaussians themselves (``Kernels.fused``: the opt-in CUDA kernels,
+    ``Renderer("cuda", kernels="v2")``) does so for a float32 render in the global order, projecting
+    (and evaluating SH) in one fused kernel without compaction, so the extras' ``ids`` are every
+    Gaussian and ``radii`` (0, 0) marks the culled ones (docs/cuda.md); every other render projects
+    here, then composites through ``rasterize_splats``' choice.
     """
     check_sort(sort)
-    kernels = kernel_choice(cuda_kernels)
+    choice = as_renderer(backend)
+    _check_3d(means3d, quats, scales, opacities, colors_or_sh, sh_rest)
+    device = means3d.device
+    v = _fused_variant(choice, device, means3d.dtype, sort, leaders)
+    st = composite_settings(camera.width, camera.height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope,
+                            leaders)
+    sh_degree = _sh_degree(sh_degree, colors_or_sh, sh_rest)
+    if sh_rest is not None and sh_rest.device != device:
+        raise TypeError(f"sh_rest is on {sh_rest.device} but means3d is on {device}; give every input one device")
+    lean = _lean(choice, device, means3d.dtype)
+    # a fused render hands the per-Gaussian inputs to its compositing without rasterize_splats' checks:
+    # they are checked here, in the same finiteness pass (one synchronisation, or none with the lean
+    # glue: read after the render, or made by the fused kernel itself)
+    more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
+                               st) if v is not None else []
+    chk = _checks_3d(camera, means3d, quats, scales, colors_or_sh, sh_rest, sh_degree, more,
+                     in_kernel=v is not None and lean, defer=lean)
+    sh = None if sh_degree is None else ShColours(colors_or_sh, sh_rest, sh_degree, clamp_sh_colors)
+    if v is not None:
+        coefs = colors_or_sh if sh is None or sh_rest is None else sh.coefficients()
+        return _settled(chk, load_target(v.kernel_set.fused, "renderer kernels"), means3d, quats, scales, opacities,
+                        coefs, camera, alpha, beta, gamma, background, reg_values, st, sh_degree, near_plane, eps2d,
+                        clamp_sh_colors, input_checks=chk)
+    gaussians = (means3d, quats, scales, opacities, colors_or_sh, alpha, beta, gamma, reg_values)
+    return _project_and_composite(gaussians, camera, st, choice, chk, sh, sort, background, near_plane, eps2d,
+                                  dense=lean and sort == "global" and not leaders)
+
+
+def _check_3d(means3d, quats, scales, opacities, colors_or_sh, sh_rest) -> None:
+    """The 3D inputs' shapes and dtypes."""
     n = means3d.shape[0]
     for name, t, shape in (("means3d", means3d, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
                            ("opacities", opacities, (n,))):
@@ -364,22 +406,25 @@ def rasterize(
             raise ValueError(f"{name} must be {list(shape)}, got {tuple(t.shape)}")
     checks.float_dtypes([("means3d", means3d), ("quats", quats), ("scales", scales), ("opacities", opacities),
                          ("colors_or_sh", colors_or_sh), *([("sh_rest", sh_rest)] if sh_rest is not None else [])])
-    device = means3d.device
-    lean_glue = lean(device)
-    on_cuda = device.type != "cpu" and backend in ("auto", "cuda") \
-        and resolve_backend(backend, device, means3d.dtype) == "cuda"
-    fused = kernels == "v2" and sort == "global" and not leaders and on_cuda
-    # the fused path hands the per-Gaussian inputs to its compositing without rasterize_splats'
-    # checks: they are checked here, in the same finiteness pass (one synchronisation, or none
-    # with the lean glue: read after the render)
-    st = composite_settings(camera.width, camera.height, mode, k_max, eq15, reg_depth_scale, t_min, k_max_scope,
-                            leaders)
-    sh_degree = _sh_degree(sh_degree, colors_or_sh, sh_rest)
-    if sh_rest is not None and sh_rest.device != device:
-        raise TypeError(f"sh_rest is on {sh_rest.device} but means3d is on {device}; give every input one device")
-    more = _check_fused_inputs(means3d, opacities, colors_or_sh, alpha, beta, gamma, background, reg_values,
-                               st) if fused else []
-    chk = checks.InputChecks(defer=lean_glue)
+
+
+def _fused_variant(choice: Renderer, device: torch.device, dtype: torch.dtype, sort: str,
+                   leaders: bool) -> Variant | None:
+    """The variant that renders these 3D Gaussians itself (``Kernels.fused``), None where the render
+    projects here (the CPU, a per-pixel order, the leading-splat map, a variant without one)."""
+    if device.type == "cpu" or sort != "global" or leaders:
+        return None
+    if choice.backend != "auto" and not any(k.fused for k in BACKENDS[choice.backend].kernels.values()):
+        return None   # (resolved where it composites: a backend that cannot render here says so there)
+    v = render_variant(choice, device, dtype)
+    return v if v.kernel_set.fused is not None else None
+
+
+def _checks_3d(camera: Camera, means3d, quats, scales, colors_or_sh, sh_rest, sh_degree, more, in_kernel: bool,
+               defer: bool) -> checks.InputChecks:
+    """The camera's and the 3D inputs' finiteness (and non-negative scales), decided now or deferred
+    (the lean glue), or left to the fused kernel's own checks (``in_kernel``)."""
+    chk = checks.InputChecks(defer=defer)
     cam_named = [("camera.K", camera.K), ("camera.viewmat", camera.viewmat)]
     if all(t.device.type == "cpu" for _, t in cam_named):   # the trainer's: decided once per camera (Camera.memo)
         camera.memo(("finite",), lambda: checks.finite(cam_named))
@@ -387,30 +432,31 @@ def rasterize(
         chk.finite(cam_named)
     named = [("means3d", means3d), ("quats", quats), ("scales", scales), ("colors_or_sh", colors_or_sh),
              *_used_rest(sh_rest, sh_degree), *more]
-    if fused and lean_glue:   # the fused projection checks them itself: a flag it raises, read after the render
+    if in_kernel:   # the fused projection checks them itself: a flag it raises, read after the render
         chk.in_kernel(named, pos_inf_ok=("gamma",), non_negative_name="scales")
     else:
         chk.finite(named, pos_inf_ok=("gamma",))
         chk.non_negative("scales", scales)
-    sh = None if sh_degree is None else ShColours(colors_or_sh, sh_rest, sh_degree, clamp_sh_colors)
-    if fused:
-        from smgs.raster.cuda_v2 import rasterize_fused
+    return chk
 
-        coefs = colors_or_sh if sh is None or sh_rest is None else sh.coefficients()
-        return _settled(chk, rasterize_fused, means3d, quats, scales, opacities, coefs, camera, alpha, beta,
-                        gamma, background, reg_values, st, sh_degree, near_plane, eps2d, clamp_sh_colors, input_checks=chk)
+
+def _project_and_composite(gaussians: tuple, camera: Camera, st: CompositeSettings, choice: Renderer,
+                           chk: checks.InputChecks, sh: ShColours | None, sort: str, background, near_plane: float,
+                           eps2d: float, dense: bool) -> RenderOutput:
+    """``rasterize``'s projection here, then the compositing of ``rasterize_splats``' choice.
+    ``dense`` (the lean glue): no compaction, a culled Gaussian keeps its row and renders at
+    opacity 0, so nothing waits for the count of survivors."""
+    means3d, quats, scales, opacities, colors_or_sh, alpha, beta, gamma, reg_values = gaussians
+    device = means3d.device
     # The camera packed on the host (with the centre where SH needs it) and copied over once per
     # camera (kept on it until it changes: Camera.memo).
     center = sh is not None
     view = camera.memo(("view", means3d.dtype, center, device),
                        lambda: to_device(host_view(camera, means3d.dtype, center=center), device))
-    # Lean glue: no compaction (a culled Gaussian keeps its row and renders at opacity 0), so no
-    # host wait; on the CUDA backend's plain path only (the host paths take compacted splats).
-    dense = lean_glue and on_cuda and sort == "global" and not leaders
     # The reference backend is the oracle: pure PyTorch throughout, so its projection is too. The
     # colours from SH are made with the projection (in its compiled pass where that runs).
     proj = project_gaussians(means3d, quats, scales, camera, near_plane=near_plane, eps2d=eps2d,
-                             fused=False if backend == "reference" else None, view=view, dense=dense, sh=sh)
+                             fused=False if choice.backend == "reference" else None, view=view, dense=dense, sh=sh)
     ids = proj.ids
     if dense:
         pick = (lambda t: t)
@@ -426,7 +472,7 @@ def rasterize(
     rd = ray_depth(means3d[ids], quats[ids], scales[ids], camera) if sort == "per_pixel" else None
     splats = Splats2D(means2d, proj.conics, opac, colors, proj.depths, pick(alpha), pick(beta), pick(gamma),
                       background, pick(reg_values), rd)
-    out = _composite(splats, st, backend, kernels, chk)
+    out = _composite(splats, st, choice, chk)
     if out.leaders is not None and ids.numel():   # projected index -> the caller's index (none: all -1)
         out.leaders = torch.where(out.leaders >= 0, ids[out.leaders.clamp_min(0)], out.leaders)
     out.extras.update(ids=ids, means2d=means2d, radii=proj.radii)

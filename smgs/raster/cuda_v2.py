@@ -4,10 +4,10 @@ lean shared-memory batch, the softmax backward's head as whole 32-byte records i
 and the per-pixel order and leading-splat map on the GPU (``csrc/cuda_pixel.cu``, the twin of the
 CPU backend's re-sorting window).
 
-Selected with ``rasterize(..., cuda_kernels="v2")`` / ``rasterize_splats(..., cuda_kernels="v2")``
-or ``SMGS_CUDA_KERNELS=v2`` (``kernel_choice``); the default stays the CUDA path last verified on a
-GPU (``smgs.raster.cuda``) until a GPU run has verified these (tests/test_raster_cuda_v2.py, marked
-gpu). The interface mirrors ``smgs.raster.cuda``; the compositing takes ``radii`` in addition, the
+The cuda backend's kernel set "v2" (``smgs.raster.backends``): selected with
+``rasterize(..., backend=Renderer("cuda", kernels="v2"))`` (or ``"auto"``), ``renderer.kernels=v2`` in
+a run's config or ``SMGS_CUDA_KERNELS=v2``; the default stays the CUDA path last verified on a GPU
+(``smgs.raster.cuda``) until a GPU run has verified these (tests/test_raster_cuda_v2.py, marked gpu). The interface mirrors ``smgs.raster.cuda``; the compositing takes ``radii`` in addition, the
 fused projection's cull marks.
 """
 
@@ -38,20 +38,6 @@ CFLAGS = ["-O3"]
 HEAD_BUDGET_BYTES = 512 * 2**20
 # Bound of the per-pixel backward's step records (every composited step of the pixels in flight).
 PIXEL_BUDGET_BYTES = 512 * 2**20
-
-KERNELS = ("default", "v2")
-KERNELS_ENV = "SMGS_CUDA_KERNELS"
-
-
-def kernel_choice(cuda_kernels: str | None) -> str:
-    """Which CUDA kernels render: the argument, else ``$SMGS_CUDA_KERNELS``, else ``"default"``."""
-    choice = cuda_kernels if cuda_kernels is not None else (os.environ.get(KERNELS_ENV, "").strip() or "default")
-    if choice not in KERNELS:
-        where = "cuda_kernels" if cuda_kernels is not None else KERNELS_ENV
-        raise ValueError(f"{where}={choice!r} is not a set of CUDA kernels; choose one of {', '.join(KERNELS)} "
-                         "(docs/cuda.md)")
-    return choice
-
 
 def _why_not_buildable() -> str | None:
     return cuda._why_not_buildable()

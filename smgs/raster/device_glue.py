@@ -7,41 +7,26 @@ take turns, and a small scene costs the sum of both (docs/gpu/README.md has the 
 * ``record_event``: a marker on the current stream whose completion the host can test without
   waiting; a non-blocking copy to the host followed by an event is read for free once anything
   else (the binding's one pair-count read) has waited on the stream past it;
-* ``lean``: the opt-in glue (``SMGS_CUDA_GLUE=lean``) that keeps the input checks on the device
-  (read after the render with the binding's own wait) and projects without compaction (culled
-  splats keep their rows with radius 0 and opacity 0, so nothing waits for a count of survivors).
-  It stays opt-in until a GPU run has verified it (``python -m bench.gpu_check``, docs/gpu/README.md);
-  the default is the path verified there.
+* the lean glue, the cuda backend's opt-in glue variant (``smgs.raster.backends``:
+  ``renderer.glue=lean`` in a run's config, ``Renderer("cuda", glue="lean")`` or
+  ``SMGS_CUDA_GLUE=lean``), keeps the input checks on the device (read after the render with the
+  binding's own wait) and projects without compaction (culled splats keep their rows with radius 0
+  and opacity 0, so nothing waits for a count of survivors). It stays opt-in until a GPU run has
+  verified it (``python -m bench.gpu_check``, docs/gpu/README.md); the default ("verified") is the
+  path verified there.
 """
 
 from __future__ import annotations
 
-import os
 from typing import Protocol
 
 import torch
-
-GLUE_ENV = "SMGS_CUDA_GLUE"
-GLUES = ("verified", "lean")
 
 
 class Event(Protocol):
     def query(self) -> bool: ...
 
     def synchronize(self) -> None: ...
-
-
-def glue() -> str:
-    """The glue in use: ``verified`` (default) or ``lean`` (``SMGS_CUDA_GLUE``)."""
-    value = os.environ.get(GLUE_ENV, "") or "verified"
-    if value not in GLUES:
-        raise ValueError(f"{GLUE_ENV}={value!r}; expected one of {', '.join(GLUES)} (unset: verified)")
-    return value
-
-
-def lean(device: torch.device) -> bool:
-    """Whether renders of tensors on ``device`` take the lean glue (never on the CPU, where nothing waits)."""
-    return device.type != "cpu" and glue() == "lean"
 
 
 def to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:

@@ -1,5 +1,6 @@
 """EWA projection and SH colours of 3D Gaussians on a CUDA device, one fused kernel each way
-(``csrc/projection_cuda.cu``), part of the opt-in CUDA kernels (``cuda_kernels="v2"``; docs/cuda.md).
+(``csrc/projection_cuda.cu``), part of the opt-in CUDA kernels (the cuda backend's kernel set "v2",
+``smgs.raster.backends``; docs/cuda.md).
 
 Unlike ``smgs.raster.projection.project_gaussians`` nothing is compacted: every Gaussian keeps its
 row, a culled one (behind the near plane, or its 3σ box off the image) with zeros and radii (0, 0),

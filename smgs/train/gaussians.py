@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from smgs.raster.sh import num_sh_bases, rgb_to_sh0
-from smgs.train.config import GaussianConfig, ParamInit
+from smgs.train.sections import GaussianConfig, ParamInit
 
 PARAM_NAMES: tuple[str, ...] = ("means", "scales", "quats", "opacities", "sh0", "shN", "alpha", "beta",
                                 "gamma")

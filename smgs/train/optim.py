@@ -7,7 +7,7 @@ import math
 
 import torch
 
-from smgs.train.config import OptimConfig
+from smgs.train.sections import OptimConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians
 
 

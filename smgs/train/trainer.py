@@ -17,9 +17,10 @@ import torch
 
 from smgs.camera import Camera
 from smgs.data.scene import Scene
-from smgs.device import as_device, check_backend, generator_state, restore_generator
+from smgs.device import as_device, generator_state, restore_generator
 from smgs.metrics.image import psnr_from_mse
 from smgs.raster import RenderOutput, mode_flags, rasterize
+from smgs.raster.backends import check_backend
 from smgs.raster.checks import NonFiniteInputError, nonfinite_counts
 from smgs.raster.kernel_clock import KernelClock
 from smgs.raster.ray_depth import check_sort
@@ -28,8 +29,7 @@ from smgs.train.config import TrainConfig, to_dict
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, flat_layout
 from smgs.train.image_loss import PhotometricLoss, ray_variance
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategies import make_strategy
-from smgs.train.strategies import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS
+from smgs.train.strategies import StrategyRun, start_strategy
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +82,7 @@ class Trainer:
         check_sort(cfg.sort)
         self.device = as_device(device)
         check_backend(cfg.backend, self.device)
+        self.renderer = cfg.renderer   # the backend and its variants (smgs.raster.backends)
         keep_freed_buffers()  # per-step image temporaries reuse heap pages (see smgs.train.allocator)
         self.scene = scene
         self.cfg = cfg
@@ -102,10 +103,7 @@ class Trainer:
         for n in PARAM_NAMES:   # unused groups get no gradients at all
             if n not in self.optimizer.names:
                 self.gaussians.params[n].requires_grad_(False)
-        size_prune = cfg.densify.size_prune
-        if size_prune is None:
-            size_prune = SIZE_PRUNE_3DGS if cfg.mode == "3dgs" else SIZE_PRUNE_SOFTMAX_GS
-        self.strategy = make_strategy(cfg.densify, self.extent, size_prune, seed=cfg.seed, device=self.device)
+        self.strategy = start_strategy(cfg.densify, StrategyRun(self.extent, cfg.mode, int(cfg.seed), self.device))
         self.plan += self.strategy.describe()
         self.plan += self.strategy.initialize(self.gaussians, self.optimizer)
         self.reg_on = self.use_softmax and (cfg.loss.lambda_beta_var > 0 or cfg.loss.lambda_gamma_var > 0)
@@ -186,7 +184,7 @@ class Trainer:
             mode=self.cfg.mode, k_max=self.cfg.k_max, k_max_scope=self.cfg.k_max_scope, sh_degree=deg,
             sh_rest=g.params["shN"] if deg > 0 else None,
             background=background,
-            backend=self.cfg.backend, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
+            backend=self.renderer, eq15=self.cfg.eq15, t_min=self.cfg.t_min, sort=self.cfg.sort,
             reg_values=self.reg_values() if with_reg else None, reg_depth_scale=self.reg_depth_scale,
             clamp_sh_colors=self.cfg.gaussians.clamp_colors, leaders=leaders)
 

@@ -7,20 +7,23 @@ gsplat measure it) and its largest screen radius. Every ``refine_every`` steps a
 ``refine_start``: clone small Gaussians and split large ones whose mean gradient ≥ grad_threshold,
 then prune the transparent ones (opacity < 0.005) and, after the first opacity reset, the big ones
 (largest world scale > size_prune × extent; screen radius > ``prune_screen_px`` only where that is
-set: 3DGS as released never prunes by screen size, ``DensifyConfig``). Opacity reset every
+set: 3DGS as released never prunes by screen size, ``DefaultStrategy``). Opacity reset every
 ``reset_every`` steps to min(opacity, 0.01).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 import torch
 
 from smgs.device import generator_state, restore_generator
+from smgs.ranges import Range
 from smgs.raster.projection import quat_to_rotmat
-from smgs.train.config import DensifyConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians, inverse_sigmoid
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategies.base import RefineEvent
+from smgs.train.strategies.base import RefineEvent, Strategy, StrategyRun
 
 SIZE_PRUNE_3DGS = 0.1
 """3DGS prunes Gaussians whose largest scale exceeds 0.1 × the scene extent."""
@@ -28,24 +31,58 @@ SIZE_PRUNE_3DGS = 0.1
 SIZE_PRUNE_SOFTMAX_GS = 0.4
 """Softmax-GS raises that threshold to 0.4 × extent (paper Sec. 4.2)."""
 
+SEED_OFFSET = 7919
+"""Offsets the strategy's random stream (the split samples) from the trainer's (same run seed)."""
 
-class DefaultStrategy:
-    """Clone / split / prune / opacity reset over a ``Gaussians`` and its ``GaussianOptimizer``.
 
-    ``size_prune`` is the resolved world-space size threshold (relative to the extent); ``device``
-    the run's device (statistics and the split samples' generator live there).
-    Implements ``smgs.train.strategies.base.Strategy``.
+@dataclass
+class DefaultStrategy(Strategy):
+    """3DGS adaptive density control: clone, split and prune by the screen-space gradient, opacity
+    reset (3DGS train.py / gaussian_model.py @82bc469; gsplat DefaultStrategy). Its settings are the
+    densify section's keys besides the shared ones (``DensifyConfig``).
+
+    ``grad_threshold``: clone or split where a Gaussian's mean view-space gradient reaches it (3DGS's
+    densify_grad_threshold, gsplat's grow_grad2d, this section's own earlier name); the budget's
+    kind sets it. ``percent_dense``: a candidate no larger than this × extent is cloned, a larger
+    one split into ``split_n``. ``prune_opacity``: Gaussians under it are pruned. ``size_prune``:
+    world-space pruning of Gaussians whose largest scale exceeds size_prune × extent, only after the
+    first opacity reset (3DGS 0.1); None takes the mode's (0.1 for 3dgs, 0.4 for the Softmax-GS
+    variants: the paper's Sec. 4.2 raises "the Gaussian size pruning threshold to 0.4", which we read
+    as this world-space 0.1 → 0.4, since GEF sharpening shrinks a splat's effective size).
+    ``prune_screen_px``: also prune, after the first reset, Gaussians whose largest screen radius
+    exceeds this many pixels of the training image; None (default) prunes none so. 3DGS's code names
+    20 px, but its densification zeroes every Gaussian's max_radii2D before the test, so the released
+    code and the paper's evaluation never pruned by screen size (its authors in
+    graphdeco-inria/gaussian-splatting#123 and #643: the world-space rule "suffices"; gsplat's
+    DefaultStrategy leaves it off too). With it on, a 3000-step run from random points at the 5 %
+    budget lost 70 % of its Gaussians to it within 100 steps of the first reset and collapsed
+    (docs/studies/fox-collapse.md). ``reset_value``: the opacity every Gaussian is reset to at most.
+
+    Running (``Strategy.start``): the statistics and the split samples' generator live on the run's
+    device; ``size_limit`` is the resolved size threshold (relative to the extent).
     """
 
-    kind = "default"
+    strategy: str = "default"
+    grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    split_n: int = 2
+    prune_opacity: float = 0.005
+    size_prune: float | None = None
+    prune_screen_px: float | None = None   # 3DGS as released (see above); 20 = the rule 3DGS's code names
+    reset_value: float = 0.01
 
-    def __init__(self, cfg: DensifyConfig, extent: float, size_prune: float, seed: int = 0, *,
-                 device: torch.device | str) -> None:
-        self.cfg = cfg
-        self.extent = float(extent)
-        self.size_prune = float(size_prune)
-        self.device = torch.device(device)
-        self.seed = int(seed) + 7919
+    RANGES: ClassVar[dict[str, Range]] = {
+        "grad_threshold": Range(0), "percent_dense": Range(0, lo_open=True), "split_n": Range(1, integer=True),
+        "prune_opacity": Range(0, 1, hi_open=True), "size_prune": Range(0, lo_open=True, optional=True),
+        "prune_screen_px": Range(0, lo_open=True, optional=True), "reset_value": Range(0, 1, lo_open=True, hi_open=True),
+    }
+
+    def setup(self, run: StrategyRun) -> None:
+        self.extent = float(run.extent)
+        self.size_limit = float(self.size_prune if self.size_prune is not None
+                                else SIZE_PRUNE_3DGS if run.mode == "3dgs" else SIZE_PRUNE_SOFTMAX_GS)
+        self.device = torch.device(run.device)
+        self.seed = int(run.seed) + SEED_OFFSET
         self.gen = torch.Generator(device=self.device).manual_seed(self.seed)
         self._scales: dict[tuple, torch.Tensor] = {}
         self._reset_stats(0)
@@ -60,7 +97,7 @@ class DefaultStrategy:
         self.max_radii = torch.zeros(n, device=self.device)
 
     def active(self, iteration: int) -> bool:
-        return self.cfg.enabled and iteration < self.cfg.refine_stop
+        return self.enabled and iteration < self.refine_stop
 
     def wants_stats(self, n: int) -> bool:
         """Whether this step's screen-space statistics can change a refinement. Not when ``n``
@@ -68,32 +105,22 @@ class DefaultStrategy:
         configured: the count only changes at refinements, which then have no room to grow and
         zero the statistics afterwards, so they would be discarded unread (the Table 1 fits
         spend their whole run so). ``RefineEvent.capped`` then reports 0."""
-        c = self.cfg
-        return c.cap is None or n < c.cap or c.reset_every is not None
+        return self.cap is None or n < self.cap or self.reset_every is not None
 
     # -- the Strategy interface -------------------------------------------------------------
     def describe(self) -> list[str]:
-        c = self.cfg
-        if not c.enabled:
-            return ["densification: off (fixed count)"]
-        return [f"densification: budget {c.budget_kind} (grad {c.grad_threshold:g}{', cap ' + str(c.cap) if c.cap else ''}), "
-                f"steps {c.refine_start}-{c.refine_stop} every {c.refine_every}",
-                "opacity reset: off; size pruning: off (only after a reset)" if c.reset_every is None
-                else f"opacity reset every {c.reset_every}; size pruning {self.size_prune:g} x extent"
-                     + ("" if c.prune_screen_px is None else f" and {c.prune_screen_px:g} px on screen")
+        return [f"densification: budget {self.budget_kind} (grad {self.grad_threshold:g}{', cap ' + str(self.cap) if self.cap else ''}), "
+                f"steps {self.refine_start}-{self.refine_stop} every {self.refine_every}",
+                "opacity reset: off; size pruning: off (only after a reset)" if self.reset_every is None
+                else f"opacity reset every {self.reset_every}; size pruning {self.size_limit:g} x extent"
+                     + ("" if self.prune_screen_px is None else f" and {self.prune_screen_px:g} px on screen")
                      + " after the first reset"]
-
-    def initialize(self, g: Gaussians, opt: GaussianOptimizer) -> list[str]:
-        return []
 
     def step_pre_backward(self, iteration: int, g: Gaussians, out) -> None:
         """Keep the screen-space mean gradients of this render when they can be used."""
         means2d = out.extras["means2d"]
         if self.active(iteration) and self.wants_stats(len(g)) and means2d.requires_grad:
             means2d.retain_grad()
-
-    def regularizer(self, iteration: int, g: Gaussians) -> None:
-        return None
 
     def step_post_backward(self, iteration: int, g: Gaussians, opt: GaussianOptimizer, out, camera,
                            lr_means: float) -> RefineEvent | None:
@@ -139,9 +166,8 @@ class DefaultStrategy:
         ev = RefineEvent()
         if not self.active(iteration):
             return ev
-        c = self.cfg
-        if iteration > c.refine_start and iteration % c.refine_every == 0:
-            after_reset = c.reset_every is not None and iteration > c.reset_every
+        if iteration > self.refine_start and iteration % self.refine_every == 0:
+            after_reset = self.reset_every is not None and iteration > self.reset_every
             ev = self.densify_and_prune(g, opt, prune_big=after_reset)
         if self._resets(iteration):
             self.reset_opacity(g, opt)
@@ -150,7 +176,7 @@ class DefaultStrategy:
 
     def _resets(self, iteration: int) -> bool:
         """Whether the step of this 1-based iteration (an active one) ends in an opacity reset."""
-        return self.cfg.reset_every is not None and iteration % self.cfg.reset_every == 0
+        return self.reset_every is not None and iteration % self.reset_every == 0
 
     def reset_steps(self, steps: int) -> list[int]:
         """The 1-based iterations of a ``steps`` run that end in an opacity reset (``step``)."""
@@ -159,17 +185,16 @@ class DefaultStrategy:
     # -- operations --------------------------------------------------------------------------
     @torch.no_grad()
     def densify_and_prune(self, g: Gaussians, opt: GaussianOptimizer, prune_big: bool) -> RefineEvent:
-        c = self.cfg
         n = len(g)
         self._ensure(n)
         grads = self.grad2d / self.count.clamp_min(1)
         grads[self.count == 0] = 0.0
         max_scale = g.scales.max(dim=1).values
-        small = max_scale <= c.percent_dense * self.extent
-        cand = grads >= c.grad_threshold
+        small = max_scale <= self.percent_dense * self.extent
+        cand = grads >= self.grad_threshold
         capped = 0
-        if c.cap is not None:
-            room = max(c.cap - n, 0)
+        if self.cap is not None:
+            room = max(self.cap - n, 0)
             if int(cand.sum()) > room:
                 # Keep the candidates with the largest gradients; each adds one Gaussian net.
                 idx = torch.nonzero(cand).squeeze(1)
@@ -187,7 +212,7 @@ class DefaultStrategy:
             for k in PARAM_NAMES:
                 extra[k].append(p[k][clone])
         if n_split:
-            k_n = c.split_n
+            k_n = self.split_n
             sel = torch.nonzero(split).squeeze(1).repeat(k_n)
             s = g.scales.detach()[sel]
             samples = torch.randn(s.shape, generator=self.gen, dtype=s.dtype, device=s.device) * s
@@ -205,16 +230,16 @@ class DefaultStrategy:
         # Originals of the split Gaussians go; so do transparent ones and, after the first
         # reset, big ones (new rows have no screen radius yet).
         split_rows = torch.cat([split, split.new_zeros(n_new)])
-        transparent = (g.opacities.detach() < c.prune_opacity) & ~split_rows
+        transparent = (g.opacities.detach() < self.prune_opacity) & ~split_rows
         drop = split_rows | transparent
         n_screen = 0
         if prune_big:
-            if c.prune_screen_px is not None:
+            if self.prune_screen_px is not None:
                 radii = torch.cat([self.max_radii, self.max_radii.new_zeros(n_new)])
-                on_screen = (radii > c.prune_screen_px) & ~drop
+                on_screen = (radii > self.prune_screen_px) & ~drop
                 n_screen = int(on_screen.sum())
                 drop |= on_screen
-            drop |= g.scales.detach().max(dim=1).values > self.size_prune * self.extent
+            drop |= g.scales.detach().max(dim=1).values > self.size_limit * self.extent
         n_pruned = int(drop.sum()) - n_split
         n_transparent = int(transparent.sum())
         if bool(drop.any()):
@@ -226,19 +251,18 @@ class DefaultStrategy:
     @torch.no_grad()
     def reset_opacity(self, g: Gaussians, opt: GaussianOptimizer) -> None:
         """Opacities to min(opacity, reset_value); the opacity Adam moments restart at 0."""
-        new = g.opacities.detach().clamp_max(self.cfg.reset_value)
+        new = g.opacities.detach().clamp_max(self.reset_value)
         opt.reset("opacities", inverse_sigmoid(new))
 
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"grad2d": self.grad2d.clone(), "count": self.count.clone(), "max_radii": self.max_radii.clone(),
-                "gen": generator_state(self.gen)}
+        return {"kind": self.strategy, "grad2d": self.grad2d.clone(), "count": self.count.clone(),
+                "max_radii": self.max_radii.clone(), "gen": generator_state(self.gen)}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore onto this strategy's device; the generator as ``smgs.device.restore_generator``."""
-        if state.get("kind", self.kind) != self.kind:
-            raise ValueError(f"checkpoint has the {state['kind']!r} densification strategy's state, this run "
-                             f"uses {self.kind!r} (densify.strategy)")
+        """Restore onto this strategy's device; the generator as ``smgs.device.restore_generator``
+        (a checkpoint written before strategies named themselves in it has no ``kind``)."""
+        self.check_kind(state.get("kind", self.strategy))
         self.grad2d = state["grad2d"].to(self.device, copy=True)
         self.count = state["count"].to(self.device, copy=True)
         self.max_radii = state["max_radii"].to(self.device, copy=True)

@@ -21,12 +21,15 @@ from __future__ import annotations
 
 import torch
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 from smgs.device import generator_state, restore_generator
+from smgs.ranges import Range
 from smgs.raster.projection import quat_to_rotmat
-from smgs.train.config import DensifyConfig
 from smgs.train.gaussians import PARAM_NAMES, Gaussians
 from smgs.train.optim import GaussianOptimizer
-from smgs.train.strategies.base import RefineEvent
+from smgs.train.strategies.base import RefineEvent, Strategy, StrategyRun
 
 N_MAX = 51
 """Largest number of Gaussians one source becomes in one relocation (gsplat's table size); a
@@ -92,35 +95,52 @@ def position_noise(g: Gaussians, lr_means: float, noise_lr: float, k: float, t: 
     return cov_eps * (gate * noise_lr * lr_means)[:, None]
 
 
-class MCMCStrategy:
-    """Relocation, growth to ``cap``, position noise and L1 regularisers (see the module doc).
-    Implements ``smgs.train.strategies.Strategy``."""
+@dataclass
+class MCMCStrategy(Strategy):
+    """3DGS-MCMC (Kheradmand et al. 2024): dead Gaussians relocated onto live ones, growth up to the
+    cap, position noise and L1 regularisers (see the module doc). Its settings are the densify
+    section's keys besides the shared ones (``DensifyConfig``, of which it
+    reads ``cap`` as its ``cap_max`` and the refinement schedule; it never resets): ``prune_opacity``,
+    the dead-Gaussian threshold, and the ``mcmc_*`` fields (gsplat's ``MCMCStrategy`` defaults): growth
+    per refinement, noise scale (× the position lr), noise gate sigmoid(-k (o - t)), L1 weights on
+    opacities and scales."""
 
-    kind = "mcmc"
+    strategy: str = "mcmc"
+    refine_stop: int = 25_000
+    reset_every: int | None = None
+    prune_opacity: float = 0.005
+    mcmc_grow_rate: float = 0.05
+    mcmc_noise_lr: float = 5e5
+    mcmc_gate_k: float = 100.0
+    mcmc_gate_t: float = 0.005
+    mcmc_opacity_reg: float = 0.01
+    mcmc_scale_reg: float = 0.01
 
-    def __init__(self, cfg: DensifyConfig, seed: int = 0, *, device: torch.device | str) -> None:
-        if not cfg.cap or cfg.cap < 1:
+    RANGES: ClassVar[dict[str, Range]] = {
+        "prune_opacity": Range(0, 1, hi_open=True),
+        **{f: Range(0) for f in ("mcmc_grow_rate", "mcmc_noise_lr", "mcmc_gate_k", "mcmc_gate_t",
+                                 "mcmc_opacity_reg", "mcmc_scale_reg")},
+    }
+
+    def setup(self, run: StrategyRun) -> None:
+        if not self.cap or self.cap < 1:
             raise ValueError("the mcmc strategy needs a cap on the count (densify.cap, e.g. budget=mcmc_<cap>)")
-        if not 0 <= cfg.mcmc_grow_rate:
-            raise ValueError(f"densify.mcmc_grow_rate must be >= 0, got {cfg.mcmc_grow_rate}")
-        self.cfg = cfg
-        self.device = torch.device(device)
-        self.seed = int(seed) + SEED_OFFSET
+        self.device = torch.device(run.device)
+        self.seed = int(run.seed) + SEED_OFFSET
         self.gen = torch.Generator(device=self.device).manual_seed(self.seed)
 
     # -- the Strategy interface --------------------------------------------------------------
     def describe(self) -> list[str]:
-        c = self.cfg
-        return [f"densification: mcmc (budget {c.budget_kind}, cap {c.cap}), relocation of opacity <= "
-                f"{c.prune_opacity:g} and growth x{1 + c.mcmc_grow_rate:g} at steps {c.refine_start}-"
-                f"{c.refine_stop} every {c.refine_every}; no opacity reset",
-                f"mcmc: position noise {c.mcmc_noise_lr:g} x lr gated by sigmoid(-{c.mcmc_gate_k:g}(o - "
-                f"{c.mcmc_gate_t:g})); L1 regularisers opacity {c.mcmc_opacity_reg:g}, scale {c.mcmc_scale_reg:g}"]
+        return [f"densification: mcmc (budget {self.budget_kind}, cap {self.cap}), relocation of opacity <= "
+                f"{self.prune_opacity:g} and growth x{1 + self.mcmc_grow_rate:g} at steps {self.refine_start}-"
+                f"{self.refine_stop} every {self.refine_every}; no opacity reset",
+                f"mcmc: position noise {self.mcmc_noise_lr:g} x lr gated by sigmoid(-{self.mcmc_gate_k:g}(o - "
+                f"{self.mcmc_gate_t:g})); L1 regularisers opacity {self.mcmc_opacity_reg:g}, scale {self.mcmc_scale_reg:g}"]
 
     @torch.no_grad()
     def initialize(self, g: Gaussians, opt: GaussianOptimizer) -> list[str]:
         """More initial Gaussians than the cap: keep a random ``cap`` of them."""
-        n, cap = len(g), int(self.cfg.cap)
+        n, cap = len(g), int(self.cap)
         if n <= cap:
             return []
         gen = self.gen
@@ -129,26 +149,18 @@ class MCMCStrategy:
         opt.keep(keep)
         return [f"mcmc: {n} initial Gaussians above the cap {cap}; kept a random {cap}"]
 
-    def step_pre_backward(self, iteration: int, g: Gaussians, out) -> None:
-        return None   # MCMC reads no screen-space statistics
-
-    def reset_steps(self, steps: int) -> list[int]:
-        return []   # MCMC never resets the opacities
-
     def regularizer(self, iteration: int, g: Gaussians) -> torch.Tensor | None:
-        c = self.cfg
         if len(g) == 0:   # a mean over no Gaussian is NaN; with none left there is nothing to regularise
             return None
         terms = []
-        if c.mcmc_opacity_reg > 0:
-            terms.append(c.mcmc_opacity_reg * g.opacities.mean())
-        if c.mcmc_scale_reg > 0:
-            terms.append(c.mcmc_scale_reg * g.scales.mean())
+        if self.mcmc_opacity_reg > 0:
+            terms.append(self.mcmc_opacity_reg * g.opacities.mean())
+        if self.mcmc_scale_reg > 0:
+            terms.append(self.mcmc_scale_reg * g.scales.mean())
         return sum(terms) if terms else None
 
     def refines_at(self, iteration: int) -> bool:
-        c = self.cfg
-        return c.refine_start < iteration < c.refine_stop and iteration % c.refine_every == 0
+        return self.refine_start < iteration < self.refine_stop and iteration % self.refine_every == 0
 
     @torch.no_grad()
     def step_post_backward(self, iteration: int, g: Gaussians, opt: GaussianOptimizer, out, camera,
@@ -157,9 +169,8 @@ class MCMCStrategy:
         if self.refines_at(iteration):
             ev.relocated = self.relocate(g, opt)
             ev.added = self.grow(g, opt)
-        c = self.cfg
-        if c.mcmc_noise_lr > 0 and lr_means > 0 and len(g):
-            noise = position_noise(g, lr_means, c.mcmc_noise_lr, c.mcmc_gate_k, c.mcmc_gate_t,
+        if self.mcmc_noise_lr > 0 and lr_means > 0 and len(g):
+            noise = position_noise(g, lr_means, self.mcmc_noise_lr, self.mcmc_gate_k, self.mcmc_gate_t,
                                    self.gen)
             g.params["means"].add_(noise)
         return ev
@@ -173,7 +184,7 @@ class MCMCStrategy:
         reset its Adam moments; returns the copies' parameters, one row per entry of ``src``."""
         counts = torch.bincount(src, minlength=len(g))
         o, s = relocation(g.opacities.detach()[src], g.scales.detach()[src], counts[src] + 1,
-                          min_opacity=self.cfg.prune_opacity)
+                          min_opacity=self.prune_opacity)
         opt.set_rows(src, {"opacities": torch.logit(o), "scales": torch.log(s)})
         return {k: g.params[k].detach()[src].clone() for k in PARAM_NAMES}
 
@@ -181,7 +192,7 @@ class MCMCStrategy:
     def relocate(self, g: Gaussians, opt: GaussianOptimizer) -> int:
         """Dead Gaussians become copies of live ones drawn by opacity; returns how many moved."""
         op = g.opacities.detach()
-        dead = op <= self.cfg.prune_opacity
+        dead = op <= self.prune_opacity
         n_dead = int(dead.sum())
         if n_dead == 0 or n_dead == len(g):
             return 0
@@ -196,9 +207,9 @@ class MCMCStrategy:
         """Add copies of Gaussians drawn by opacity: the count × (1 + grow_rate), at least one
         more, at most ``cap``; returns how many were added."""
         n = len(g)
-        target = min(int(self.cfg.cap), max(int(n * (1.0 + self.cfg.mcmc_grow_rate)), n + 1))
+        target = min(int(self.cap), max(int(n * (1.0 + self.mcmc_grow_rate)), n + 1))
         n_add = target - n
-        if n_add <= 0 or n == 0 or self.cfg.mcmc_grow_rate == 0:
+        if n_add <= 0 or n == 0 or self.mcmc_grow_rate == 0:
             return 0
         src = self._sample(g.opacities.detach().double(), n_add)
         opt.append(self._split_sources(g, opt, src))
@@ -206,11 +217,9 @@ class MCMCStrategy:
 
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"kind": self.kind, "gen": generator_state(self.gen)}
+        return {"kind": self.strategy, "gen": generator_state(self.gen)}
 
     def load_state_dict(self, state: dict) -> None:
         """The generator as ``smgs.device.restore_generator`` (exact on the same kind of device)."""
-        if state.get("kind") != self.kind:
-            raise ValueError(f"checkpoint has the {state.get('kind', 'default')!r} densification strategy's state, "
-                             f"this run uses {self.kind!r} (densify.strategy)")
+        self.check_kind(state.get("kind", "default"))   # the default strategy's earliest states name none
         restore_generator(self.gen, state["gen"], self.seed)
