@@ -108,3 +108,10 @@ def test_accumulate_uses_ndc_gradients_and_visible_ids():
     torch.testing.assert_close(st.grad2d, torch.tensor([16.0, 0.0, 16.0]))   # × W/2, × H/2
     torch.testing.assert_close(st.count, torch.tensor([1.0, 0.0, 1.0]))
     torch.testing.assert_close(st.max_radii, torch.tensor([4.0, 0.0, 2.0]))
+    # a culled row of the dense projection (radius 0 on an axis) adds nothing; the largest radius is
+    # the larger axis, as a reduction over the two would give
+    st.accumulate(3, torch.tensor([0, 1, 2]), torch.tensor([[1.0, 0.0], [5.0, 5.0], [0.0, 1.0]]),
+                  torch.tensor([[5.0, 0.0], [0.0, 0.0], [1.0, 6.0]]), width=32, height=16)
+    torch.testing.assert_close(st.grad2d, torch.tensor([16.0, 0.0, 24.0]))
+    torch.testing.assert_close(st.count, torch.tensor([1.0, 0.0, 2.0]))
+    torch.testing.assert_close(st.max_radii, torch.tensor([5.0, 0.0, 6.0]))

@@ -142,14 +142,17 @@ class DefaultStrategy(Strategy):
         self._ensure(n)
         if ids.numel() == 0 or means2d_grad is None:
             return
-        vis = (radii > 0).all(dim=1).to(self.count.dtype)
+        # the two radii as columns: elementwise ops (a reduction over a dimension of 2 cost ~50 µs on
+        # 10K rows, the same values)
+        rx, ry = radii.unbind(1)
+        vis = ((rx > 0) & (ry > 0)).to(self.count.dtype)
         g = means2d_grad.detach() * self._ndc_scale(width, height, means2d_grad)
         self.grad2d.index_add_(0, ids, g.norm(dim=1).to(self.grad2d.dtype) * vis)
         self.count.index_add_(0, ids, vis)
         # Largest screen radius; the renderer gives per-axis 3σ half extents, 3DGS the 3σ radius
         # of the major axis (equal for axis-aligned splats, up to √2 larger for rotated ones). A
         # culled row's 0 leaves the maximum as it was (radii are >= 0).
-        self.max_radii.scatter_reduce_(0, ids, radii.max(dim=1).values.to(self.max_radii.dtype), "amax")
+        self.max_radii.scatter_reduce_(0, ids, torch.maximum(rx, ry).to(self.max_radii.dtype), "amax")
 
     def _ndc_scale(self, width: int, height: int, like: torch.Tensor) -> torch.Tensor:
         """(W/2, H/2) on the gradients' device, made once per image size (a copy to the device, a
