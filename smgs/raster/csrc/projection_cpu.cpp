@@ -350,18 +350,23 @@ std::vector<at::Tensor> sh_backward(const at::Tensor& means3d_, const at::Tensor
 // stack, a finiteness test and a read; a sum of a large tensor is a parallel region (an OpenMP wake-up
 // each, with passive waits), so a training step's checks cost ~0.5 ms for ~0.4 MB of parameters.
 namespace {
+// On the bits, integer compares only (so that the loop vectorises), in blocks whose counts fit 32 bits.
 template <bool INF_OK>
 void count_bad(const float* p, int64_t n, int64_t& bad, int64_t& neg) {
-  int64_t b = 0, g = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    uint32_t u;
-    std::memcpy(&u, p + i, sizeof u);
-    const uint32_t mag = u & 0x7fffffffu;   // exponent all ones: inf (mantissa 0) or NaN
-    b += INF_OK ? (mag > 0x7f800000u || u == 0xff800000u) : (mag >= 0x7f800000u);
-    g += p[i] < 0.f;                        // as torch's t < 0: not -0, not NaN
+  constexpr int64_t kBlock = int64_t(1) << 20;
+  for (int64_t i0 = 0; i0 < n; i0 += kBlock) {
+    const int64_t i1 = std::min(n, i0 + kBlock);
+    uint32_t b = 0, g = 0;
+    for (int64_t i = i0; i < i1; ++i) {
+      uint32_t u;
+      std::memcpy(&u, p + i, sizeof u);
+      const uint32_t mag = u & 0x7fffffffu;   // exponent all ones: inf (mantissa 0) or NaN
+      b += INF_OK ? uint32_t(mag > 0x7f800000u) | uint32_t(u == 0xff800000u) : uint32_t(mag >= 0x7f800000u);
+      g += uint32_t(u > 0x80000000u) & uint32_t(u <= 0xff800000u);   // < 0 as torch: not -0, not NaN
+    }
+    bad += b;
+    neg += g;
   }
-  bad += b;
-  neg += g;
 }
 
 // Whether each slice t[i] is contiguous (the rows of a view such as sh_rest[:, :k]).
