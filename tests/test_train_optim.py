@@ -98,3 +98,32 @@ def test_step_matches_torch_adam_per_group():
         for n in opt.names:
             torch.testing.assert_close(g.params[n].detach(), ref_params[n].detach(), rtol=1e-6, atol=1e-7)
     assert float(opt.opt.state[g.params["shN"]]["step"]) == 3 and float(opt.opt.state[g.params["means"]]["step"]) == 6
+
+
+def test_large_cpu_models_take_torchs_fused_kernel_to_the_bit():
+    """Above FOREACH_MAX_NUMEL on the CPU, the optimiser calls torch's fused Adam kernel per group
+    itself (without torch.optim's per-group Python): the parameters, moments and step counts are
+    torch.optim.Adam(fused=True)'s to the bit, with a group that has no gradient on some steps and a
+    skipped step (a non-finite loss)."""
+    g, opt = _setup(n=300)
+    opt.FOREACH_MAX_NUMEL = 0
+    ref_params = {n: g.params[n].detach().clone().requires_grad_(True) for n in opt.names}
+    ref = torch.optim.Adam([{"params": [ref_params[n]], "lr": opt.lr(n)} for n in opt.names],
+                           betas=opt.cfg.betas, eps=opt.cfg.eps, fused=True)
+    gen = torch.Generator().manual_seed(5)
+    for it in range(6):
+        for n in opt.names:
+            grad = None if (n == "shN" and it % 2 == 0) else torch.randn(g.params[n].shape, generator=gen)
+            g.params[n].grad = grad
+            ref_params[n].grad = None if grad is None else grad.clone()
+        skip = it == 4
+        opt.step(skip=torch.tensor(skip))
+        if not skip:
+            ref.step()
+        for n in opt.names:
+            assert torch.equal(g.params[n].detach(), ref_params[n].detach()), (it, n)
+            mine, theirs = opt.opt.state[g.params[n]], ref.state[ref_params[n]]
+            assert set(mine) == set(theirs), n
+            for k in theirs:
+                assert torch.equal(mine[k], theirs[k]) and mine[k].dtype == theirs[k].dtype, (it, n, k)
+    assert float(opt.opt.state[g.params["means"]]["step"]) == 5
