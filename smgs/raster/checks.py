@@ -10,11 +10,11 @@ Cost: float32 CPU tensors (the CPU trainer's) are counted exactly in one compile
 (the compiled projection's ``input_checks``, once this process has loaded it: a check never builds
 it). Otherwise one stacked sum per call and device and one host synchronisation per device; a
 non-finite sum (NaN/inf anywhere, or an overflow of finite values) then counts the bad entries per
-tensor to decide and to name them. Either way the same inputs are refused with the same words. ``InputChecks`` with ``defer`` (the lean GPU glue) keeps the checks of GPU
-tensors on the GPU (each tensor's min and max, or a flag the fused projection kernel raises) and
-reads them after the render, with the render's own wait; before the render, the splats' opacities
-are made NaN where an input is bad, so that no backend renders anything of them (a NaN splat's
-tile box is the whole image).
+tensor to decide and to name them. Either way the same inputs are refused with the same words.
+``InputChecks`` with ``defer`` (the lean GPU glue) keeps the checks of GPU tensors on the GPU (each
+tensor's min and max, or a flag the fused projection kernel raises) and reads them after the render,
+with the render's own wait; before the render, the splats' opacities are made NaN where an input is
+bad, so that no backend renders anything of them (a NaN splat's tile box is the whole image).
 """
 
 from __future__ import annotations
@@ -65,7 +65,8 @@ def float_dtypes(named: list[tuple[str, torch.Tensor | None]]) -> None:
             raise TypeError(f"{name} is {t.dtype} but {first_name} is {first.dtype}; give every input one dtype")
 
 
-def _compiled_counts(present: list[tuple[str, torch.Tensor]], pos_inf_ok: tuple[str, ...]) -> list[tuple[int, int]] | None:
+def _compiled_counts(present: list[tuple[str, torch.Tensor]],
+                     pos_inf_ok: tuple[str, ...]) -> list[tuple[int, int]] | None:
     """(bad, negative) values of each tensor, counted by the compiled pass, where every tensor is float32
     on the CPU and this process has loaded the compiled projection; else None (the PyTorch path)."""
     if not all(t.device.type == "cpu" and t.dtype == torch.float32 for _, t in present):
