@@ -242,9 +242,11 @@ def test_mcmc_budget_yaml_reaches_the_trainer_with_its_schedule_scaled():
     from omegaconf import OmegaConf
 
     from baselines.trainer_settings import train_config
+    from protocols.method_defaults import register
     from protocols.run_settings import method_settings, run_settings
     from pathlib import Path
 
+    register()   # the method configs take the trainer's defaults from Hydra's store, as protocols.run does
     root = Path(__file__).resolve().parents[1] / "configs"
     with initialize_config_dir(config_dir=str(root), version_base=None):
         cfg = compose(config_name="config", overrides=["budget=mcmc_2593000", "method=softmax_gs",
