@@ -10,7 +10,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 # records the policy at the moment torch is first imported (OpenMP reads it when torch loads)
-PROBE = """
+SPY = """
 import os, sys
 seen = []
 class Spy:
@@ -19,6 +19,8 @@ class Spy:
             seen.append(os.environ.get("OMP_WAIT_POLICY"))
         return None
 sys.meta_path.insert(0, Spy())
+"""
+PROBE = SPY + """
 import {mod}
 import torch
 print(seen[0], "smgs" in sys.modules)
@@ -47,15 +49,7 @@ def test_a_users_choice_is_kept():
 # bench/train_step.py's split (main) and its workers (Session, in the tree compared) up to the moment
 # they would build the cell, and bench/ab.py's worker (no requests); the policy goes to stderr (the
 # workers keep stdout for their answers)
-STEP_PROBE = """
-import os, sys
-seen = []
-class Spy:
-    def find_spec(self, name, path=None, target=None):
-        if name == "torch" and not seen:
-            seen.append(os.environ.get("OMP_WAIT_POLICY"))
-        return None
-sys.meta_path.insert(0, Spy())
+STEP_PROBE = SPY + """
 sys.path.insert(0, "bench")
 import train_step
 def stop(*a, **k):
