@@ -49,26 +49,22 @@ def densify_earlier_form(section: dict[str, Any]) -> dict[str, Any]:
 def densify_current_form(section: dict[str, Any]) -> dict[str, Any]:
     """A section as an earlier checkpoint wrote it (``densify_earlier_form``) with only its strategy's keys."""
     own = {f.name for f in dataclasses.fields(densify_class(section))}
-    return {k: v for k, v in section.items() if k in own or k not in builtin_keys()}
+    builtin = builtin_keys()
+    return {k: v for k, v in section.items() if k in own or k not in builtin}
 
 
 def budget_threshold(kind: str) -> float | None:
     """The densification gradient threshold that defines budget ``kind`` (None where the kind's
     strategy has none: MCMC refines by opacity)."""
-    if kind not in BUDGETS:
-        raise ValueError(f"unknown budget kind {kind!r}; known: {', '.join(BUDGETS)}")
-    cls = strategy_class(strategy_name(kind, None))
-    own = {f.name: f.default for f in dataclasses.fields(cls)}
-    if "grad_threshold" not in own:
-        return None
-    return float(BUDGETS[kind].get("grad_threshold", own["grad_threshold"]))
+    threshold = densify_start(kind)[1].get("grad_threshold")
+    return None if threshold is None else float(threshold)
 
 
 def densify_start(budget_kind: str = "full", strategy: str | None = None) -> tuple[type, dict[str, Any]]:
     """The strategy class a densify section of ``budget_kind`` runs (``strategy``, else the kind's)
     and the values it starts from: the strategy's defaults, then the kind's settings it has."""
     if budget_kind not in BUDGETS:
-        raise ValueError(f"unknown budget {budget_kind!r}; known: {', '.join(BUDGETS)}")
+        raise ValueError(f"unknown budget kind {budget_kind!r}; known: {', '.join(BUDGETS)}")
     name = strategy_name(budget_kind, strategy)
     cls = strategy_class(name)
     values = dataclasses.asdict(cls())
