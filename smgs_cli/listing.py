@@ -103,7 +103,7 @@ def renderer_entries() -> list[tuple[str, str]]:
 def main(args: list[str]) -> int:
     if args and args[0] in ("-h", "--help"):
         print(f"{USAGE}\n\nWhat a command line can name, one per line with what it is: the methods (method=, "
-              "grid.methods=), experiments (+experiment=), datasets (dataset=), budgets (budget=, grid.budgets=) "
+              "grid.methods=), experiments (+experiment=), datasets (dataset=), budgets (budget=, grid.budgets=), "
               "protocol presets (protocol=), densification strategies (method.train.densify.strategy=) and "
               "renderer backends with their variants (backend=, renderer.kernels=, renderer.glue=).")
         return 0
