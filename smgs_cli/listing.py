@@ -58,8 +58,9 @@ def dataset_entries() -> list[tuple[str, str]]:
 
     entries = [(n, about) for n, about in config_entries("dataset") if n != "plugin"]
     files = {n for n, _ in entries}
-    return entries + [(n, f"a scene format or dataset from a plugin: grid.datasets=[{n}] ({plugin_source(n)})")
-                      for n in list_names() if plugin_source(n) and n not in files]
+    plugins = {n: plugin_source(n) for n in list_names() if n not in files}
+    return entries + [(n, f"a scene format or dataset from a plugin: grid.datasets=[{n}] ({source})")
+                      for n, source in plugins.items() if source]
 
 
 def method_entries() -> list[tuple[str, str]]:
