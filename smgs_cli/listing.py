@@ -58,8 +58,9 @@ def dataset_entries() -> list[tuple[str, str]]:
 
     entries = [(n, about) for n, about in config_entries("dataset") if n != "plugin"]
     files = {n for n, _ in entries}
-    return entries + [(n, f"a scene format or dataset from a plugin: grid.datasets=[{n}] ({plugin_source(n)})")
-                      for n in list_names() if plugin_source(n) and n not in files]
+    plugins = {n: plugin_source(n) for n in list_names() if n not in files}
+    return entries + [(n, f"a scene format or dataset from a plugin: grid.datasets=[{n}] ({source})")
+                      for n, source in plugins.items() if source]
 
 
 def method_entries() -> list[tuple[str, str]]:
@@ -103,7 +104,7 @@ def renderer_entries() -> list[tuple[str, str]]:
 def main(args: list[str]) -> int:
     if args and args[0] in ("-h", "--help"):
         print(f"{USAGE}\n\nWhat a command line can name, one per line with what it is: the methods (method=, "
-              "grid.methods=), experiments (+experiment=), datasets (dataset=), budgets (budget=, grid.budgets=) "
+              "grid.methods=), experiments (+experiment=), datasets (dataset=), budgets (budget=, grid.budgets=), "
               "protocol presets (protocol=), densification strategies (method.train.densify.strategy=) and "
               "renderer backends with their variants (backend=, renderer.kernels=, renderer.glue=).")
         return 0

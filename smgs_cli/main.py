@@ -83,7 +83,7 @@ COMMANDS = (
             "score a 3DGS PLY under the harness's protocol (python -m protocols.evaluate_ply)", _evaluate),
     Command("export", "RUN_DIR... [--out FILE]",
             "write a finished run's model as a 3DGS PLY for a viewer (python -m protocols.export_ply)", _export),
-    Command("list", "{methods,experiments,datasets,budgets,protocols}",
+    Command("list", "{" + ",".join(listing.LISTED) + "}",
             "what can be named on the command line, with a line on each", listing.main),
     Command("bench", "NAME [ARGS...]",
             "a benchmark of the source checkout, bench/NAME.py (smgs bench: their names)", run_bench),

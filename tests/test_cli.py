@@ -107,6 +107,13 @@ def test_evaluate_help_lists_its_options(capsys):
     assert main(["evaluate"]) == 2 and "error: no model given" in capsys.readouterr().err
 
 
+def test_help_names_everything_smgs_list_lists(capsys):
+    """``smgs --help``'s line for ``list`` names what ``smgs list`` takes (it once left out the
+    strategies and renderers ``smgs list`` had gained)."""
+    assert main(["--help"]) == 0
+    assert "smgs list {methods,experiments,datasets,budgets,protocols,strategies,renderers}" in capsys.readouterr().out
+
+
 def test_list_descriptions_end_with_a_sentence(capsys):
     """A config's description is whole sentences of its opening comment, never a line cut off
     where the comment wraps (mcmc's ended "... with the MCMC strategy at the")."""

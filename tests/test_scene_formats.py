@@ -125,6 +125,15 @@ def test_an_entry_point_format_is_listed_without_being_imported(plugin_dir):
     assert "smgs_toy_scenes" in sys.modules and len(s.train) + len(s.test) == 4
 
 
+def test_smgs_list_datasets_lists_a_plugin_format_with_its_distribution(plugin_dir, capsys):
+    from smgs_cli.main import main
+
+    assert main(["list", "datasets"]) == 0
+    lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}
+    assert "grid.datasets=[stripes] (plugin smgs-toy-scenes)" in lines["stripes"]
+    assert "colmap" in lines and "plugin" not in lines   # configs/dataset/plugin.yaml is the runner's, not listed
+
+
 def test_a_dataset_section_is_the_formats_config_and_a_wrong_key_is_refused_naming_it(plugin_dir, tmp_path):
     from protocols.run import run_experiment
 

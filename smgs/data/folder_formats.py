@@ -50,8 +50,8 @@ class FolderFormat:
         rule, cpu_width = request.resolution(self.rule)
         over = dict(images=self.images, factor=self.factor, max_width=self.max_width or cpu_width,
                     resample=self.resample)
-        folder = self.folder(request)
-        if self.path or request.layout is None:
+        folder = self.folder(request)   # without a path, the benchmark's (no layout: refused there)
+        if self.path:
             return folder, rule or "3dgs", over, {}
         custom = {k: v for k, v in over.items() if v is not None}
         root = resolve_data_root(request.data_root)

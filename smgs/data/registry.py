@@ -74,7 +74,10 @@ def get(name: str) -> Any:
 
 def get_dataset(name: str) -> DatasetSpec:
     """The benchmark dataset ``name``; a ValueError lists the known ones."""
-    entry = get(name) if name in list_names() else None
+    try:
+        entry = _REGISTRY.get(name)
+    except KeyError:
+        entry = None
     if not isinstance(entry, DatasetSpec):
         raise ValueError(f"unknown dataset {name!r}; the built-in benchmark datasets: {', '.join(BUILTIN_DATASETS)}"
                          + (" (and plugins: smgs list datasets)" if set(list_names()) - set(BUILTINS) else ""))

@@ -256,11 +256,16 @@ def transforms_sources(path: str | Path, images: str | None = None, rule: Resolu
     return TransformsSources(path, files, base, entries, rule, split)
 
 
-def _reference_size(base: Path, images: str | None, e: _Entry) -> tuple[int, int]:
-    """The size a frame's intrinsics refer to when the file gives no w, h: its image at file_path."""
+def _reference_size(base: Path, images: str | None, e: _Entry,
+                    read: tuple[int, int] | None = None) -> tuple[int, int]:
+    """The size a frame's intrinsics refer to: w, h in the file, else its image at file_path's
+    (``read``: the size of ``e.path`` where the caller has read that image, which is the one at
+    file_path when no ``images`` folder replaces file_path's)."""
     if "w" in e.cam and "h" in e.cam:
         return int(round(_number(e.cam, "w", e.where))), int(round(_number(e.cam, "h", e.where)))
-    return image_size(e.path if images is None else _image_path(base, e.frame["file_path"], None))
+    if images is None:
+        return read or image_size(e.path)
+    return image_size(_image_path(base, e.frame["file_path"], None))
 
 
 def _check_unique_images(entries: list[_Entry]) -> None:
@@ -378,12 +383,7 @@ class _FrameLoader:
     def __call__(self, e: _Entry):
         img = read_image(e.path, keep_alpha=True)
         src = (img.shape[1], img.shape[0])
-        # The size the intrinsics refer to: given in the file, else the file at its own file_path.
-        if "w" in e.cam and "h" in e.cam:
-            ref_size = src
-        else:
-            ref_size = src if self.images is None else image_size(_image_path(self.base, e.frame["file_path"], None))
-        K, ksize, dist = _intrinsics(e.cam, ref_size, e.where)
+        K, ksize, dist = _intrinsics(e.cam, _reference_size(self.base, self.images, e, src), e.where)
         check_aspect(e.path, src, ksize)
         K = scale_intrinsics(K, ksize, src)
         if img.shape[2] == 4:
