@@ -1,6 +1,8 @@
 """The values a numeric setting may take, declared beside the setting (a config dataclass's
 ``RANGES``): the training sections (``smgs.train.config``) and the scene formats' own configs
-(``smgs.data``) refuse a value outside, naming the key, before anything runs."""
+(``smgs.data``) refuse a value outside, naming the key, before anything runs. A run reads both through
+``smgs.train.config.from_dict``, which checks them; a format made in Python
+(``smgs.data.load_scene(kind, **settings)``) takes its values as given."""
 
 from __future__ import annotations
 
