@@ -1,7 +1,9 @@
-"""What every registry of plug-ins shares (methods: baselines.registry; scene formats and datasets:
-smgs.data.registry; densification strategies: smgs.train.strategies.registry): entries named as
-``"module:attr"`` strings and imported on use, and third-party entries from a Python entry-point
-group, never allowed to shadow a built-in (``Registry``)."""
+"""What the registries of plug-ins share: entries named as ``"module:attr"`` strings and imported on
+use, and third-party entries from a Python entry-point group, never allowed to shadow a built-in.
+Scene formats and datasets (smgs.data.registry) and densification strategies
+(smgs.train.strategies.registry) are each a ``Registry``; methods (baselines.registry), whose
+built-ins are ``MethodSpec`` records rather than targets, use its functions (``entry_points``,
+``load_target``, ``source_of``)."""
 
 from __future__ import annotations
 
