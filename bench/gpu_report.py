@@ -158,7 +158,7 @@ def write_report(args, runs: dict, date: str, gsplat: str) -> list[Path]:
     """Write ``<gpu>-<date>.md`` and ``.json`` into ``args.out``, and into ``args.report_dir`` (the
     checkout's record, docs/gpu/) only where the env stage found a GPU: a run without one leaves
     nothing there."""
-    env = (runs.get("env") or _NoRun()).result
+    env = getattr(runs.get("env"), "result", None)   # None: env not run
     command = "python -m bench.gpu_check --out " + str(args.out.name)
     md = render_markdown(runs, date, gsplat, command)
     data = {"date": date, "gsplat_build": gsplat, "budget_s": args.budget, "verdict": verdict(runs),
@@ -173,10 +173,6 @@ def write_report(args, runs: dict, date: str, gsplat: str) -> list[Path]:
             _atomic(p, text + "\n")
             paths.append(p)
     return paths
-
-
-class _NoRun:
-    result = None
 
 
 def verdict(runs: dict) -> str:

@@ -30,10 +30,15 @@ register_method_defaults()   # the built-in methods' configs take the trainer's 
 GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "seeds=", "scene=", "method.name=")
 
 
+def has_config(group: str, name: str) -> bool:
+    """Whether configs/<group>/<name>.yaml exists (a method, dataset or budget with a file of its own)."""
+    return (Path(CONFIG_DIR) / group / f"{name}.yaml").exists()
+
+
 def _method_overrides(method: str) -> list[str]:
     """A method with a yaml in configs/method/ is composed from it; a plugin-only method from
     configs/method/plugin.yaml with its name."""
-    if (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
+    if has_config("method", method):
         return [f"method={method}"]
     return ["method=plugin", f"method.name={method}"]
 
@@ -42,7 +47,7 @@ def _dataset_overrides(dataset: str) -> list[str]:
     """A dataset with a yaml in configs/dataset/ is composed from it; a scene format or benchmark
     dataset registered only through the ``smgs.datasets`` entry point, from configs/dataset/plugin.yaml
     with its name as the dataset's name and kind (its settings: ``+dataset.KEY=VALUE``)."""
-    if (Path(CONFIG_DIR) / "dataset" / f"{dataset}.yaml").exists():
+    if has_config("dataset", dataset):
         return [f"dataset={dataset}"]
     return ["dataset=plugin", f"dataset.name={dataset}", f"dataset.kind={dataset}"]
 
@@ -51,7 +56,7 @@ def _budget_group(budget: str, overrides: list[str]) -> str:
     """The budget file a cell's budget name is composed from: ``configs/budget/<name>.yaml``, or, for
     a budget made on the command line (``budget=cap4 budget.cap=N budget.name=capN``, docs/usage.md),
     the file it was made from."""
-    if (Path(CONFIG_DIR) / "budget" / f"{budget}.yaml").exists():
+    if has_config("budget", budget):
         return budget
     base = _given(overrides, "budget")
     if base is not None and _given(overrides, "budget.name") == budget:
@@ -153,10 +158,10 @@ def check_command_line(args: list[str]) -> str | None:
         return ("dataset.path names a scene folder of the dataset kinds that take one: add dataset=colmap "
                 "(images/ and sparse/0/) or dataset=transforms (transforms.json) before it")
     dataset = _given(args, "dataset")
-    if dataset is not None and not (Path(CONFIG_DIR) / "dataset" / f"{dataset}.yaml").exists():
+    if dataset is not None and not has_config("dataset", dataset):
         return unknown_dataset(dataset)
     method = _given(args, "method")
-    if method is not None and not (Path(CONFIG_DIR) / "method" / f"{method}.yaml").exists():
+    if method is not None and not has_config("method", method):
         return unknown_method(method, "method")
     return None
 

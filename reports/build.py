@@ -67,6 +67,7 @@ def build_report(runs_dir: Path | str, out_dir: Path | str | None = None,
     runs: of two sweeps on one folder that end together, the report built last holds every result
     of both."""
     runs_dir = Path(runs_dir)
+    # resolved (also "." and symlinks): the folder itself is swapped, beside it in its parent (``_write``)
     out = (Path(out_dir) if out_dir is not None else runs_dir / "report").resolve()
     check_out(out)   # before anything is written beside it
     with one_build(out):
@@ -283,10 +284,8 @@ def _write(out: Path, files: dict[str, bytes], md: str) -> None:
     at the end (``smgs.atomic.replace_dir``): a build that fails (a full disk, an error) leaves
     the previous report as it was, never new tables beside an old report.md. Files of the old
     folder that the report does not write (the user's own) are carried over; those of our own that
-    the previous build listed in its manifest and this one does not produce are not."""
-    out = out.resolve()   # also "." and symlinks: the folder itself is swapped, beside it in its parent
-    check_out(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    the previous build listed in its manifest and this one does not produce are not. ``out`` is
+    resolved and checked (``check_out``) by ``build_report``, its parent made by ``one_build``."""
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
     try:
         os.chmod(tmp, 0o777 & ~umask())   # mkdtemp makes 0700; the report folder follows the umask

@@ -87,10 +87,9 @@ def environment_rows(runs: list[RunResult], machine: dict[str, str]) -> list[tup
     return rows + [("matplotlib", "—", machine.get("matplotlib", "unknown"))]
 
 
-def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None,
-                         probed_backends: list[str] | None = None) -> str:
-    """``probed_backends``: the renderer backends that this build's stability battery rendered with."""
-    machine = with_probed(machine if machine is not None else this_machine(), probed_backends)
+def environment_markdown(runs: list[RunResult], machine: dict[str, str] | None = None) -> str:
+    """``machine``: ``this_machine`` of the build (its backend row from the stability battery, ``with_probed``)."""
+    machine = machine if machine is not None else this_machine()
     lines = ["| | runs | this machine (report build) |", "|:--|:--|:--|"]
     for label, ran, here in environment_rows(runs, machine):
         lines.append(f"| {label} | {md_text(ran)} | {md_text(here)} |")

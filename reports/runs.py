@@ -268,7 +268,8 @@ def aggregate(runs: list[RunResult], get: Getter) -> Value:
             vals.append((r.seed, v))
     if not vals:
         return Value.absent(_join_reasons(gone))
-    split = config_difference([r for r in runs if r.seed in {s for s, _ in vals}])
+    scored = {s for s, _ in vals}
+    split = config_difference([r for r in runs if r.seed in scored])
     if split:
         return Value.absent(split)
     mean, std = mean_sd([x for _, x in vals])

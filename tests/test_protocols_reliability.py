@@ -6,9 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from baselines.method import MethodSpec
-from baselines.registry import register, unregister
-from baselines.splatting import GaussianSplatting
+from counting_method import counting  # noqa: F401 (the fixture)
 from protocols.results import read_result
 from protocols.run import run_experiment
 
@@ -19,29 +17,6 @@ RUN = "patterns/circle4/{}/cap4/seed0"
 
 def tiny(tmp_path, *extra):
     return TINY + [f"out_dir={tmp_path}", *extra]
-
-
-class Counting(GaussianSplatting):
-    """Records the steps it trains; raises KeyboardInterrupt once at ``interrupt_at``."""
-
-    calls: list = []
-    interrupt_at: int | None = None
-
-    def train_step(self, step):
-        Counting.calls.append(step)
-        if step == Counting.interrupt_at:
-            Counting.interrupt_at = None
-            raise KeyboardInterrupt
-        return super().train_step(step)
-
-
-@pytest.fixture
-def counting():
-    register(MethodSpec("counting", Counting, {"mode": "3dgs"}))
-    Counting.calls.clear()
-    Counting.interrupt_at = None
-    yield Counting
-    unregister("counting")
 
 
 def test_force_and_a_changed_config_train_from_step_0(tmp_path, counting):

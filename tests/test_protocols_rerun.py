@@ -10,9 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from baselines.method import MethodSpec
-from baselines.registry import register, unregister
-from baselines.splatting import GaussianSplatting
+from counting_method import counting  # noqa: F401 (the fixture)
 from protocols.ply import export_run
 from protocols.results import find_results, read_result
 from protocols.run import run_experiment
@@ -22,32 +20,6 @@ TINY = ["+experiment=patterns", "grid.budgets=[cap4]", "grid.seeds=[0]", "grid.s
         "grid.methods=[counting]", "checkpoint_every=5"]
 RUN = "patterns/circle4/counting/cap4/seed0"
 OTHER = "++method.train.k_max=64"
-
-
-class Counting(GaussianSplatting):
-    """Records the steps it trains; stops with KeyboardInterrupt (or fails) once at a step."""
-
-    calls: list = []
-    interrupt_at: int | None = None
-    fail_at: int | None = None
-
-    def train_step(self, step):
-        Counting.calls.append(step)
-        if step == Counting.interrupt_at:
-            Counting.interrupt_at = None
-            raise KeyboardInterrupt
-        if step == Counting.fail_at:
-            raise RuntimeError("diverged on purpose")
-        return super().train_step(step)
-
-
-@pytest.fixture
-def counting():
-    register(MethodSpec("counting", Counting, {"mode": "3dgs"}))
-    Counting.calls.clear()
-    Counting.interrupt_at = Counting.fail_at = None
-    yield Counting
-    unregister("counting")
 
 
 def _state(run_dir: Path, export: bool = True) -> dict:

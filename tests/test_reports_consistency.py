@@ -7,7 +7,7 @@ import re
 import reports.build
 from protocols.train_loop import left_out_of
 from reports.build import build_report
-from reports.environment import environment_markdown
+from reports.environment import environment_markdown, with_probed
 from reports.tables import not_run_note
 from reports_tree import make_tree
 
@@ -23,7 +23,7 @@ def test_paper_rows_not_run_name_their_budget():
 
 def test_environment_names_the_backends_the_stability_battery_rendered_with():
     machine = {"backend": "not probed (the build renders nothing)"}
-    md = environment_markdown([], machine, probed_backends=["cpu", "reference"])
+    md = environment_markdown([], with_probed(machine, ["cpu", "reference"]))
     assert "not probed" not in md and "cpu, reference (rendered by this report's stability battery)" in md
     assert "not probed" in environment_markdown([], machine)
 
