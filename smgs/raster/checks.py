@@ -200,19 +200,16 @@ class InputChecks:
         self._flags.append(bad)
         self._exact.append(self._kernel_exact)
         self._kernel_exact = None
+        self._stacked = self._host = self._event = None   # values copied before the kernel ran lack its flag
 
     def _values(self) -> torch.Tensor | None:
         """Every deferred value in one device tensor (finite values, signs, kernel flags), made once."""
         if self._stacked is None and (self._finite or self._signs or self._flags):
             vals = self._finite + self._signs
-            if not self._flags and len(vals) == 1:
-                self._stacked = vals[0].reshape(1)
-            elif not vals and len(self._flags) == 1:
-                self._stacked = self._flags[0]
-            else:
-                dtype = vals[0].dtype if vals else torch.float32
-                self._stacked = torch.cat([torch.stack(vals)] if vals else []
-                                          + [f.to(dtype) for f in self._flags])
+            dtype = vals[0].dtype if vals else self._flags[0].dtype
+            parts = ([vals[0].reshape(1) if len(vals) == 1 else torch.stack(vals)] if vals else []) \
+                + [f.to(dtype) for f in self._flags]
+            self._stacked = parts[0] if len(parts) == 1 else torch.cat(parts)
         return self._stacked
 
     def gate(self, opacities: torch.Tensor) -> torch.Tensor:
