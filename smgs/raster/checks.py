@@ -25,6 +25,7 @@ import operator
 import torch
 
 from smgs.raster.device_glue import Event, to_host_async
+from smgs.raster.projection import _JIT as _PROJECTION   # its compiled pass counts float32 CPU inputs
 
 MAX_IMAGE_SIDE = 16384
 """The largest width or height rendered (a 16384² RGB float32 image is 3 GiB with its buffers);
@@ -71,9 +72,7 @@ def _compiled_counts(present: list[tuple[str, torch.Tensor]],
     on the CPU and this process has loaded the compiled projection; else None (the PyTorch path)."""
     if not all(t.device.type == "cpu" and t.dtype == torch.float32 for _, t in present):
         return None
-    from smgs.raster.projection import _JIT   # the projection imports nothing of the checks
-
-    ext = _JIT.loaded()
+    ext = _PROJECTION.loaded()
     if ext is None:
         return None
     flat = ext.input_checks([t for _, t in present], [n in pos_inf_ok for n, _ in present])
@@ -125,7 +124,7 @@ def non_negative(name: str, t: torch.Tensor) -> None:
         return
     t = t.detach()
     counts = _compiled_counts([(name, t)], ())
-    negative = counts[0][1] if counts is not None else (int((t < 0).sum()) if bool((t < 0).any()) else 0)
+    negative = counts[0][1] if counts is not None else int((t < 0).sum())
     if negative:
         raise ValueError(f"{name} has {negative} negative value(s); scales are activated "
                          "(positive) standard deviations, e.g. exp(log_scales)")
