@@ -145,8 +145,8 @@ def non_negative(name: str, t: torch.Tensor) -> None:
 
 class InputChecks:
     """The finiteness and sign checks of one render call. Without ``defer`` each check decides at
-    once (``finite``, with ``non_negative`` of the one so named). With ``defer``, checks of tensors off the CPU stay on their
-    device: each tensor's min and max (one kernel; NaN propagates, ±inf shows, nothing overflows),
+    once (``finite``, with ``non_negative`` of the one so named). With ``defer``, checks of tensors
+    off the CPU stay on their device: each tensor's min and max (one kernel; NaN propagates, ±inf shows, nothing overflows),
     or a flag a kernel raises itself (``in_kernel``/``kernel_flag``: the fused projection). ``gate``
     makes the opacities NaN where a value is bad (every backend skips such a splat: nothing renders
     before the refusal); ``start`` copies the values to the host without waiting, just before the
