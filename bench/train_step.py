@@ -43,7 +43,6 @@ HERE = Path(__file__).resolve()
 ROOT = HERE.parents[1]
 if str(ROOT) not in sys.path:       # `python bench/train_step.py` from a checkout: its own smgs
     sys.path.insert(0, str(ROOT))
-STAGES = ("render", "loss", "backward", "optim", "strategy")
 
 
 def build(overrides: list[str], device: str = "cpu"):
@@ -158,20 +157,20 @@ def split_table(r: dict) -> str:
     kn = {k: 1e3 * v / n for k, v in r["kernels"].items()}
     fwd_k = kn.get("projection+SH fwd", 0.0) + kn.get("composite fwd", 0.0)
     bwd_k = kn.get("projection+SH bwd", 0.0) + kn.get("composite bwd", 0.0)
-    rows = [("render forward", st["render"], None),
-            ("  projection + SH colours (kernel)", kn.get("projection+SH fwd"), None),
-            ("  compositing (kernel)", kn.get("composite fwd"), None),
-            ("  glue", st["render"] - fwd_k if kn else None, None),
-            ("loss (kernel, value and gradient)", st["loss"], None),
-            ("backward", st["backward"], None),
-            ("  compositing (kernel)", kn.get("composite bwd"), None),
-            ("  projection + SH colours (kernel)", kn.get("projection+SH bwd"), None),
-            ("  glue (autograd, activations, gathers)", st["backward"] - bwd_k if kn else None, None),
-            ("optimiser (fused Adam) and the step's read", st["optim"], None),
-            ("strategy (densification statistics, refinement)", st["strategy"], None),
-            ("other (logs, view choice)", total - sum(st.values()), None)]
+    rows = [("render forward", st["render"]),
+            ("  projection + SH colours (kernel)", kn.get("projection+SH fwd")),
+            ("  compositing (kernel)", kn.get("composite fwd")),
+            ("  glue", st["render"] - fwd_k if kn else None),
+            ("loss (kernel, value and gradient)", st["loss"]),
+            ("backward", st["backward"]),
+            ("  compositing (kernel)", kn.get("composite bwd")),
+            ("  projection + SH colours (kernel)", kn.get("projection+SH bwd")),
+            ("  glue (autograd, activations, gathers)", st["backward"] - bwd_k if kn else None),
+            ("optimiser (fused Adam) and the step's read", st["optim"]),
+            ("strategy (densification statistics, refinement)", st["strategy"]),
+            ("other (logs, view choice)", total - sum(st.values()))]
     out = ["| stage | ms / step | share |", "|---|--:|--:|"]
-    for name, v, _ in rows:
+    for name, v in rows:
         out.append(f"| {name} | {'n/a' if v is None else f'{v:.2f}'} | "
                    f"{'' if v is None else f'{100 * v / total:.1f} %'} |")
     out.append(f"| **step** | **{total:.2f}** | 100 % |")

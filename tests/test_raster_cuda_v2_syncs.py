@@ -139,3 +139,20 @@ def test_the_lean_glue_renders_an_infinite_gamma_without_complaint(monkeypatch):
             s["gamma"][:5] = float("inf")
         out = _render(s, cam, "softmax_gs", False, backend=Renderer(kernels="v2"))
         assert (comp.base.saved["v"]["radii"][5:10] != 0).any() and torch.isfinite(out.rgb.cpu()).all()
+
+
+def test_the_lean_glue_refuses_a_bad_input_also_with_the_camera_on_the_device(monkeypatch):
+    """A camera on the device is checked with deferred values of its own, copied before the render;
+    the fused projection's flag, raised after that copy, is still read: a bad Gaussian is refused,
+    not silently culled."""
+    cam = _lean_camera()
+    with _lean_v2(monkeypatch) as (m, comp):
+        on_device = Camera(cam.K.to(OTHER), cam.viewmat.to(OTHER), cam.width, cam.height)
+        s = _splats(60, OTHER, sh=True)
+        with torch.no_grad():
+            s["means3d"][5, 1] = float("nan")
+        with pytest.raises(ValueError, match=r"means3d has 1 NaN or inf"):
+            _render(s, on_device, "softmax_gs", True, backend=Renderer(kernels="v2"))
+        s = _splats(60, OTHER, sh=True)   # and a good one renders
+        out = _render(s, on_device, "softmax_gs", True, backend=Renderer(kernels="v2"))
+        assert torch.isfinite(out.rgb.cpu()).all()

@@ -435,8 +435,7 @@ def _checks_3d(camera: Camera, means3d, quats, scales, colors_or_sh, sh_rest, sh
     if in_kernel:   # the fused projection checks them itself: a flag it raises, read after the render
         chk.in_kernel(named, pos_inf_ok=("gamma",), non_negative_name="scales")
     else:
-        chk.finite(named, pos_inf_ok=("gamma",))
-        chk.non_negative("scales", scales)
+        chk.finite(named, pos_inf_ok=("gamma",), non_negative_name="scales")
     return chk
 
 

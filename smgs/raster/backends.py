@@ -72,7 +72,8 @@ BACKENDS: dict[str, Backend] = {
     "cuda": Backend(
         "cuda", "compiled CUDA (docs/cuda.md)",
         {"default": Kernels("smgs.raster.cuda:rasterize_splats_cuda",
-                            about="the kernels last verified on a GPU: compositing in the global order"),
+                            about="compositing in the global order; ran on a GPU once, changed since "
+                                  "(docs/cuda.md#what-has-run-on-a-gpu)"),
          "v2": Kernels("smgs.raster.cuda_v2:rasterize_splats_cuda_v2",
                        pixel="smgs.raster.cuda_v2:rasterize_splats_pixel_cuda",
                        fused="smgs.raster.cuda_v2:rasterize_fused",

@@ -25,6 +25,7 @@ import operator
 import torch
 
 from smgs.raster.device_glue import Event, to_host_async
+from smgs.raster.projection import _JIT as _PROJECTION   # its compiled pass counts float32 CPU inputs
 
 MAX_IMAGE_SIDE = 16384
 """The largest width or height rendered (a 16384² RGB float32 image is 3 GiB with its buffers);
@@ -71,9 +72,7 @@ def _compiled_counts(present: list[tuple[str, torch.Tensor]],
     on the CPU and this process has loaded the compiled projection; else None (the PyTorch path)."""
     if not all(t.device.type == "cpu" and t.dtype == torch.float32 for _, t in present):
         return None
-    from smgs.raster.projection import _JIT   # the projection imports nothing of the checks
-
-    ext = _JIT.loaded()
+    ext = _PROJECTION.loaded()
     if ext is None:
         return None
     flat = ext.input_checks([t for _, t in present], [n in pos_inf_ok for n, _ in present])
@@ -93,8 +92,11 @@ def _refuse(name: str, t: torch.Tensor, count: int, pos_inf_ok: tuple[str, ...])
                               "finite inputs (find where they became non-finite, e.g. a diverged optimiser)")
 
 
-def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = ()) -> None:
-    """Refuse NaN/inf in the given tensors (+inf allowed in those named in ``pos_inf_ok``)."""
+def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = (),
+           non_negative_name: str | None = None) -> None:
+    """Refuse NaN/inf in the given tensors (+inf allowed in those named in ``pos_inf_ok``), then
+    negative values in the one named ``non_negative_name`` (``non_negative``; the compiled pass
+    counts both at once)."""
     present = [(n, t.detach()) for n, t in named if t is not None and t.numel()]
     if not present:
         return
@@ -103,6 +105,9 @@ def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, 
         for (name, t), (bad, _) in zip(present, counts):
             if bad:
                 _refuse(name, t, bad, pos_inf_ok)
+        for (name, _), (_, negative) in zip(present, counts):
+            if name == non_negative_name and negative:
+                _refuse_negative(name, negative)
         return
     # One sum per tensor in its own dtype: NaN/inf propagate into it. A finite sum that overflows
     # only sends us to the exact per-element count below, which refuses nothing finite. (Summing in
@@ -111,13 +116,21 @@ def finite(named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, 
     by_device: dict[torch.device, list[torch.Tensor]] = {}
     for _, t in present:
         by_device.setdefault(t.device, []).append(t.sum().to(torch.float64))
-    if all(bool(torch.isfinite(torch.stack(sums)).all()) for sums in by_device.values()):
-        return
-    for name, t in present:
-        bad = torch.isnan(t) | (t == -torch.inf) if name in pos_inf_ok else ~torch.isfinite(t)
-        count = int(bad.sum())
-        if count:
-            _refuse(name, t, count, pos_inf_ok)
+    if not all(bool(torch.isfinite(torch.stack(sums)).all()) for sums in by_device.values()):
+        for name, t in present:
+            bad = torch.isnan(t) | (t == -torch.inf) if name in pos_inf_ok else ~torch.isfinite(t)
+            count = int(bad.sum())
+            if count:
+                _refuse(name, t, count, pos_inf_ok)
+    if non_negative_name is not None:
+        sign = dict(present).get(non_negative_name)
+        if sign is not None:
+            non_negative(non_negative_name, sign)
+
+
+def _refuse_negative(name: str, count: int) -> None:
+    raise ValueError(f"{name} has {count} negative value(s); scales are activated "
+                     "(positive) standard deviations, e.g. exp(log_scales)")
 
 
 def non_negative(name: str, t: torch.Tensor) -> None:
@@ -125,16 +138,15 @@ def non_negative(name: str, t: torch.Tensor) -> None:
         return
     t = t.detach()
     counts = _compiled_counts([(name, t)], ())
-    negative = counts[0][1] if counts is not None else (int((t < 0).sum()) if bool((t < 0).any()) else 0)
+    negative = counts[0][1] if counts is not None else int((t < 0).sum())
     if negative:
-        raise ValueError(f"{name} has {negative} negative value(s); scales are activated "
-                         "(positive) standard deviations, e.g. exp(log_scales)")
+        _refuse_negative(name, negative)
 
 
 class InputChecks:
     """The finiteness and sign checks of one render call. Without ``defer`` each check decides at
-    once (``finite``, ``non_negative``). With ``defer``, checks of tensors off the CPU stay on their
-    device: each tensor's min and max (one kernel; NaN propagates, ±inf shows, nothing overflows),
+    once (``finite``, with ``non_negative`` of the one so named). With ``defer``, checks of tensors
+    off the CPU stay on their device: each tensor's min and max (one kernel; NaN propagates, ±inf shows, nothing overflows),
     or a flag a kernel raises itself (``in_kernel``/``kernel_flag``: the fused projection). ``gate``
     makes the opacities NaN where a value is bad (every backend skips such a splat: nothing renders
     before the refusal); ``start`` copies the values to the host without waiting, just before the
@@ -153,28 +165,27 @@ class InputChecks:
         self._host: torch.Tensor | None = None
         self._event: Event | None = None
 
-    def finite(self, named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = ()) -> None:
+    def finite(self, named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = (),
+               non_negative_name: str | None = None) -> None:
+        """``finite`` of these (and the sign of ``non_negative_name``'s), decided now or deferred."""
         present = [(n, t) for n, t in named if t is not None and t.numel()]
         if not self.defer:
-            finite(present, pos_inf_ok)
+            finite(present, pos_inf_ok, non_negative_name)
             return
-        finite([(n, t) for n, t in present if t.device.type == "cpu"], pos_inf_ok)   # decided at once
+        # decided at once
+        finite([(n, t) for n, t in present if t.device.type == "cpu"], pos_inf_ok, non_negative_name)
         on_device = [(n, t.detach()) for n, t in present if t.device.type != "cpu"]
         for name, t in on_device:
             if name in pos_inf_ok:   # NaN or -inf shows in the min; +inf is allowed (min(x, 0): finite)
-                self._finite.append(t.amin().clamp(max=0.0))
+                lo = t.amin()
+                self._finite.append(lo.clamp(max=0.0))
             else:
-                self._finite.extend(torch.aminmax(t))
+                lo, hi = torch.aminmax(t)
+                self._finite += [lo, hi]
+            if name == non_negative_name:   # the sign from the same min
+                self._signs.append(lo)
         if on_device:
-            self._exact.append(lambda: finite(on_device, pos_inf_ok))
-
-    def non_negative(self, name: str, t: torch.Tensor) -> None:
-        if not self.defer or t.device.type == "cpu":
-            non_negative(name, t)
-        elif t.numel():
-            t = t.detach()
-            self._signs.append(t.amin())
-            self._exact.append(lambda: non_negative(name, t))
+            self._exact.append(lambda: finite(on_device, pos_inf_ok, non_negative_name))
 
     def in_kernel(self, named: list[tuple[str, torch.Tensor | None]], pos_inf_ok: tuple[str, ...] = (),
                   non_negative_name: str | None = None) -> None:
@@ -182,13 +193,7 @@ class InputChecks:
         flag (``kernel_flag``): nothing to launch here; ``non_negative_name`` names the input whose
         sign it checks too."""
         present = [(n, t.detach()) for n, t in named if t is not None and t.numel()]
-        sign = dict(present).get(non_negative_name) if non_negative_name else None
-
-        def exact() -> None:
-            finite(present, pos_inf_ok)
-            if sign is not None:
-                non_negative(non_negative_name, sign)
-        self._kernel_exact = exact
+        self._kernel_exact = lambda: finite(present, pos_inf_ok, non_negative_name)
 
     @property
     def awaits_kernel_flag(self) -> bool:
@@ -200,19 +205,16 @@ class InputChecks:
         self._flags.append(bad)
         self._exact.append(self._kernel_exact)
         self._kernel_exact = None
+        self._stacked = self._host = self._event = None   # values copied before the kernel ran lack its flag
 
     def _values(self) -> torch.Tensor | None:
         """Every deferred value in one device tensor (finite values, signs, kernel flags), made once."""
         if self._stacked is None and (self._finite or self._signs or self._flags):
             vals = self._finite + self._signs
-            if not self._flags and len(vals) == 1:
-                self._stacked = vals[0].reshape(1)
-            elif not vals and len(self._flags) == 1:
-                self._stacked = self._flags[0]
-            else:
-                dtype = vals[0].dtype if vals else torch.float32
-                self._stacked = torch.cat([torch.stack(vals)] if vals else []
-                                          + [f.to(dtype) for f in self._flags])
+            dtype = vals[0].dtype if vals else self._flags[0].dtype
+            parts = ([vals[0].reshape(1) if len(vals) == 1 else torch.stack(vals)] if vals else []) \
+                + [f.to(dtype) for f in self._flags]
+            self._stacked = parts[0] if len(parts) == 1 else torch.cat(parts)
         return self._stacked
 
     def gate(self, opacities: torch.Tensor) -> torch.Tensor:

@@ -6,9 +6,10 @@ CPU backend's re-sorting window).
 
 The cuda backend's kernel set "v2" (``smgs.raster.backends``): selected with
 ``rasterize(..., backend=Renderer("cuda", kernels="v2"))`` (or ``"auto"``), ``renderer.kernels=v2`` in
-a run's config or ``SMGS_CUDA_KERNELS=v2``; the default stays the CUDA path last verified on a GPU
-(``smgs.raster.cuda``) until a GPU run has verified these (tests/test_raster_cuda_v2.py, marked gpu). The interface mirrors ``smgs.raster.cuda``; the compositing takes ``radii`` in addition, the
-fused projection's cull marks.
+a run's config or ``SMGS_CUDA_KERNELS=v2``; the default stays ``smgs.raster.cuda`` (the kernels that
+ran on a GPU once, changed since: docs/cuda.md#what-has-run-on-a-gpu) until a GPU run has verified
+these (tests/test_raster_cuda_v2.py, marked gpu). The interface mirrors ``smgs.raster.cuda``; the
+compositing takes ``radii`` in addition, the fused projection's cull marks.
 """
 
 from __future__ import annotations
