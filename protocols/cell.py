@@ -16,6 +16,7 @@ from typing import Any, Iterator
 
 from smgs.env import versions
 from protocols.cell_lock import cell_lock
+from protocols.cell_stop import StopRequests
 from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_in
 from protocols.live_cells import live_cell
 from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
@@ -89,9 +90,10 @@ def with_device(cfg: dict) -> dict:
     return {**cfg, "device": str(dev)}
 
 
-def run_cell(payload: dict) -> dict:
+def run_cell(payload: dict, stops: StopRequests | None = None) -> dict:
     """payload: {"key", "run_dir", "config" (resolved dict), optionally "settings" (the config's
-    ``CellSettings``, made when the cell was planned)}. Returns a small summary."""
+    ``CellSettings``, made when the cell was planned)}. ``stops``: the stop requests of the job the
+    cell runs in (``protocols.cell_stop``; a SLURM job's signals). Returns a small summary."""
     from smgs.device import DeviceError
 
     run_dir = Path(payload["run_dir"])
@@ -111,14 +113,15 @@ def run_cell(payload: dict) -> dict:
                 return {"key": payload["key"], "status": "skipped", "busy": True,
                         "error": f"held by {holder.describe()}, which is writing this cell; left to it "
                                  "(rerun later to pick up its result, or on_busy=wait to wait for it)"}
-            return _run_locked(payload["key"], cfg, settings, run_dir, h, base)
+            return _run_locked(payload["key"], cfg, settings, run_dir, h, base, stops)
     except LeftAlone as e:   # nothing is written: the folder is not ours to change
         return {"key": payload["key"], "status": "failed", "error": str(e)}
     except Exception as e:  # the folder or its lock is the problem: recorded where it can be
         return _failed(payload["key"], run_dir, base, e, None)
 
 
-def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: str, base: RunResult) -> dict:
+def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: str, base: RunResult,
+                stops: StopRequests | None = None) -> dict:
     """The cell's run, with its folder's lock held (``protocols.cell_lock``). A finished result of
     another config (or under ``force``) is kept whole until this run's own is complete: the run
     then works in the folder beside it (``protocols.cell_rerun``) and is swapped in at the end."""
@@ -146,7 +149,7 @@ def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: s
             atomic_write_text(work / CONFIG_FILE, _yaml(cfg))
             from protocols.train_loop import train_and_evaluate
             with live_cell(run_dir):
-                result = train_and_evaluate(cfg, settings, work, base, log)
+                result = train_and_evaluate(cfg, settings, work, base, log, stops)
             if result.config_hash != h:  # a result is only ever recorded under its own config
                 raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
         except KeyboardInterrupt:

@@ -2,7 +2,7 @@
 
 Every executor calls the same picklable function on the same payloads, so the results tree is the
 same whichever ran it. A cell records its own failure in its results.json; an executor only has
-to survive a worker that died without writing one.
+to survive a worker (or a SLURM job: ``protocols.slurm_sweep``) that died without writing one.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ Summary = dict[str, Any]
 KINDS = ("sequential", "local", "slurm", "submitit_local")
 
 
-def _died(payload: Payload, err: BaseException | str) -> Summary:
+def _died(payload: Payload, err: BaseException | str, what: str = "worker died: ") -> Summary:
     msg = err if isinstance(err, str) else f"{type(err).__name__}: {err}"
-    out = {"key": payload.get("key"), "status": "failed", "error": f"worker died: {msg}"}
+    out = {"key": payload.get("key"), "status": "failed", "error": f"{what}{msg}"}
     from protocols.cell import LOG   # here: the runner's start does not import the cell (torch)
 
     log = os.path.join(str(payload["run_dir"]), LOG) if payload.get("run_dir") else None
@@ -115,28 +115,27 @@ def execute(fn: Callable[[Payload], Summary], payloads: list[Payload], kind: str
                     for proc in list(getattr(pool, "_processes", {}).values()):
                         proc.terminate()
                     raise
+        elif kind == "slurm":
+            from protocols.slurm_sweep import run_on_slurm
+
+            def done(i: int, summary: Summary) -> None:
+                out[i] = summary
+                _advance(bar, summary)
+
+            run_on_slurm(fn, payloads, slurm or {}, folder or "submitit", done, lambda p, why: _died(p, why, ""))
         else:
-            out = _submitit(fn, payloads, kind, slurm or {}, folder or "submitit", bar)
+            out = _submitit_local(fn, payloads, slurm or {}, folder or "submitit", bar)
     finally:
         bar.close()
     return [o if o is not None else _died(p, "no result") for o, p in zip(out, payloads)]
 
 
-def _submitit(fn, payloads, kind, slurm: dict, folder: str, bar) -> list[Summary]:
+def _submitit_local(fn, payloads, slurm: dict, folder: str, bar) -> list[Summary]:
+    """submitit's local executor: the SLURM path's pickling and job files, in local processes."""
     import submitit
 
-    if kind == "submitit_local":
-        ex = submitit.LocalExecutor(folder=folder)
-        ex.update_parameters(timeout_min=int(slurm.get("timeout_min", 60)))
-    else:
-        ex = submitit.AutoExecutor(folder=folder, cluster="slurm")
-        params = {k: v for k, v in slurm.items() if v is not None and k != "folder"}
-        partition = params.pop("partition", None)
-        ex.update_parameters(**{("slurm_" + k if k not in ("timeout_min", "gpus_per_node",
-                                                           "cpus_per_task", "mem_gb") else k): v
-                                for k, v in params.items()})
-        if partition:
-            ex.update_parameters(slurm_partition=partition)
+    ex = submitit.LocalExecutor(folder=folder)
+    ex.update_parameters(timeout_min=int(slurm.get("timeout_min", 60)))
     jobs = ex.map_array(fn, payloads)
     out: list[Summary] = []
     for job, p in zip(jobs, payloads):

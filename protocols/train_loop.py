@@ -17,10 +17,12 @@ from PIL import Image
 
 from baselines.method import LeadingSplats, OpacityResets
 from protocols.cell_scene import load_scene_for
+from protocols.cell_stop import StopRequests
 from protocols.collapse import CollapseWatch
 from protocols.sections import EvalConfig
 from protocols.ply import after_run, make_method
 from protocols.fps_slot import fps_slot
+from protocols.job_cpus import train_conditions as job_train_conditions
 from protocols.live_cells import NeighbourLog
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
@@ -140,10 +142,11 @@ def _quantiles(t: torch.Tensor) -> dict[str, float]:
 
 
 def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result: RunResult,
-                       log: logging.Logger) -> RunResult:
+                       log: logging.Logger, stops: StopRequests | None = None) -> RunResult:
     """One run: train (with checkpoints and intermediate evaluations), then the final metrics,
     speed, diagnostics and view consistency. ``cfg["device"]`` is the resolved device
-    (``protocols.cell.with_device``); ``settings`` the cell's resolved settings (``cell_settings``)."""
+    (``protocols.cell.with_device``); ``settings`` the cell's resolved settings (``cell_settings``);
+    ``stops`` the stop requests of the job the cell runs in (``protocols.cell_stop``), if any."""
     device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
@@ -167,7 +170,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     watch = CollapseWatch.start(method.num_gaussians())
     with track_peak_memory(device) as peak:
         result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log,
-                             neighbours, watch)
+                             neighbours, watch, stops)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
@@ -182,7 +185,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     record_renderer(result, cfg, settings, device)
     result.diagnostics = diagnostics(method, desc, plan, within, ev, clock, peak.kind, fps_conditions)
     result.diagnostics["train_conditions"] = {"threads": torch.get_num_threads(),
-                                              "cells_in_parallel": neighbours.most}
+                                              "cells_in_parallel": neighbours.most, **job_train_conditions()}
     if peak.baseline_bytes:   # resident at the training block's entry: peak minus this is the run's own
         result.diagnostics["peak_memory_baseline_mb"] = peak.baseline_bytes / 2**20
     result.diagnostics["collapse"] = watch.assess(result.num_gaussians, coverage, plan,
@@ -224,13 +227,15 @@ def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
 
 def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
           cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger,
-          neighbours: NeighbourLog | None, watch: CollapseWatch) -> list[CurvePoint]:
+          neighbours: NeighbourLog | None, watch: CollapseWatch, stops: StopRequests | None = None) -> list[CurvePoint]:
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps, moved off opacity resets (``eval_steps``; the error-
     against-time curve, returned) and a checkpoint every ``checkpoint_every`` steps, both outside
     the train clock. ``neighbours``
     counts the cells running on this machine every 10 steps; ``watch`` follows the Gaussian count
-    (``protocols.collapse``; its history is kept in the checkpoints)."""
+    (``protocols.collapse``; its history is kept in the checkpoints). A stop request (``stops``: a
+    signal to the cell's job) is carried out after the step it came in, that step's checkpoint saved
+    first."""
     progress = _load_checkpoint(run_dir, method, config_hash, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     if progress.get("collapse_watch"):
@@ -244,6 +249,8 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
     checks = set(eval_steps(steps, list(ev.fractions), resets))
     every = int(cfg.get("checkpoint_every") or 0)
     bar = progress_bar(steps, f"{cfg['scene']}/{cfg['method']['name']}", initial=start, position=1, leave=False)
+    if stops is not None:
+        stops.begin()   # a stop request now waits for the end of a step
     for step in range(start, steps):
         with clock.training():
             logs = method.train_step(step)
@@ -255,11 +262,15 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             curve.append(CurvePoint(done, clock.seconds, last_psnr, method.num_gaussians()))
             log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
                      method.num_gaussians())
-        if every and done % every == 0 and done < steps:
+        stop = stops.take() if stops is not None else None
+        if (every and done % every == 0 and done < steps) or stop is not None:
             with clock.exclude("checkpoint"):
                 _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
                                                    "curve": [c.__dict__ for c in curve],
                                                    "config_hash": config_hash, "collapse_watch": watch.to_json()})
+        if stop is not None:
+            log.info("step %d: stopping for %s; checkpoint saved", done, stop.reason)
+            stop.action()
         bar.update(1)
         if done % 10 == 0 or done == steps:
             if neighbours is not None:
@@ -271,6 +282,8 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             if curve:
                 post["test"] = f"{curve[-1].psnr:.2f}"
             bar.set_postfix(post, gs=method.num_gaussians())
+    if stops is not None:
+        stops.end()
     bar.close()
     return curve
 
