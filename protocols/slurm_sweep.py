@@ -31,6 +31,8 @@ def run_on_slurm(fn: Callable[[Payload], Summary], payloads: list[Payload], sect
                  done: Callable[[int, Summary], None], died: Callable[[Payload, str], Summary]) -> None:
     """Run ``fn`` on every payload as SLURM jobs; ``done(index, summary)`` as each cell ends
     (``died(payload, why)`` makes the summary of one whose job ended without a result)."""
+    if not payloads:
+        return
     try:
         s = SlurmSettings.of(section)
     except ValueError as e:
@@ -42,8 +44,12 @@ def run_on_slurm(fn: Callable[[Payload], Summary], payloads: list[Payload], sect
     if s.lead_s() < s.signal_lead_s:
         note(f"slurm: executor.slurm.signal_lead_s={s.signal_lead_s} does not fit a {s.timeout_min}-min limit: jobs "
              f"are warned {s.lead_s()} s before it")
-    waiting = _submit(fn, payloads, s, folder)
-    by_index = {w.index: w for w in waiting}
+    waiting: list[Waiting] = []
+    finished: set[int] = set()
+
+    def finish(i: int, summary: Summary) -> None:
+        finished.add(i)
+        done(i, summary)
 
     def ended(w: Waiting, what: str) -> Summary:
         return died(payloads[w.index], f"slurm job {w.job_id} {what}; its output: {last_words(w.job)}")
@@ -56,17 +62,17 @@ def run_on_slurm(fn: Callable[[Payload], Summary], payloads: list[Payload], sect
 
     queries = SlurmQueries(note)
     try:
-        if waiting:
-            queries.has_accounting(waiting[0].job_id)   # a cluster without accounting is said now, once
-        wait(waiting, queries, collect, ended, lambda i, summary: (by_index.pop(i), done(i, summary)))
-    except BaseException:   # Ctrl-C, SIGTERM: the jobs stop too (each saves its step's checkpoint)
-        _cancel([w.job_id for w in by_index.values()])
+        _submit(fn, payloads, s, folder, waiting)
+        queries.has_accounting(waiting[0].job_id)   # a cluster without accounting is said now, once
+        wait(waiting, queries, collect, ended, finish)
+    except BaseException:   # Ctrl-C, SIGTERM, a refusal: the jobs stop too (each saves its step's checkpoint)
+        _cancel([w.job_id for w in waiting if w.index not in finished])
         raise
 
 
-def _submit(fn, payloads: list[Payload], s: SlurmSettings, folder: str) -> list[Waiting]:
-    """Every cell submitted, in one array per GPU count; a refusal cancels what was submitted and
-    stops the sweep naming the key."""
+def _submit(fn, payloads: list[Payload], s: SlurmSettings, folder: str, waiting: list[Waiting]) -> None:
+    """Every cell submitted, in one array per GPU count (into ``waiting``); a refusal stops the sweep
+    naming the key (the caller cancels what was submitted)."""
     import submitit
 
     from protocols.slurm_job import CellJob, JobLimits
@@ -77,27 +83,24 @@ def _submit(fn, payloads: list[Payload], s: SlurmSettings, folder: str) -> list[
     groups: dict[int, list[int]] = {}
     for i, p in enumerate(payloads):
         groups.setdefault(s.gpus_for(p["config"].get("device"), has_gpus), []).append(i)
-    name = f"smgs-{payloads[0]['config'].get('experiment_name', 'grid')}" if payloads else "smgs"
-    waiting: list[Waiting] = []
+    name = f"smgs-{payloads[0]['config'].get('experiment_name', 'grid')}"
     for gpus, idx in sorted(groups.items()):
         ex = submitit.SlurmExecutor(folder=folder, max_num_timeout=s.max_requeues)
         ex.update_parameters(**s.parameters(gpus, name))
         try:
-            with contextlib.redirect_stderr(io.StringIO()):   # submitit prints sbatch's refusal; the error holds it
+            with contextlib.redirect_stderr(io.StringIO()):   # submitit prints sbatch's refusal; e holds it
                 jobs = ex.submit_array([CellJob(fn, payloads[i], limits) for i in idx])
         except submitit.core.utils.FailedJobError as e:
-            _cancel([w.job_id for w in waiting])
             devices = sorted({str(payloads[i]["config"].get("device", "auto")) for i in idx})
-            raise SystemExit(f"slurm: nothing was run: {refusal(str(e), s, gpus, devices)}") from None
+            raise SystemExit(f"invalid config, nothing was run: {refusal(str(e), s, gpus, devices)}") from None
         waiting += [Waiting(i, payloads[i]["key"], j) for i, j in zip(idx, jobs)]
         array = str(jobs[0].job_id).split("_")[0]
         where = f"partition {s.partition}" if s.partition else "the default partition"
         auto = " (device=auto: the partition has GPUs)" if gpus and has_gpus else ""
         note(f"slurm: {len(idx)} cell(s) as job {'array ' if len(idx) > 1 else ''}{array} on {where}, each "
              f"{s.describe(gpus)}{auto}; which job runs which cell: {Path(folder) / CELLS_FILE}")
-    with open(Path(folder) / CELLS_FILE, "a", encoding="utf-8") as f:
-        f.writelines(f"{w.job_id}\t{w.key}\n" for w in waiting)
-    return waiting
+        with open(Path(folder) / CELLS_FILE, "a", encoding="utf-8") as f:
+            f.writelines(f"{job.job_id}\t{payloads[i]['key']}\n" for i, job in zip(idx, jobs))
 
 
 def _raised(text: str) -> str:

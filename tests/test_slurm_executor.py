@@ -1,7 +1,7 @@
 """``executor.kind=slurm`` against a real single-node SLURM (tests/slurm_cluster.py: skips where the
 tests do not run as root or slurm-wlm and munge are not installed).
 
-Three sweeps run at once, about two minutes in all (SLURM's time limits come in whole minutes):
+Four sweeps run at once, about two minutes in all (SLURM's time limits come in whole minutes):
 
 - A: the docs' CPU-node example (docs/usage.md, "Running on a cluster") on tiny cells: every cell
   ok, the same metrics and the same progress lines as the sequential run with as many threads, each
@@ -12,7 +12,8 @@ Three sweeps run at once, about two minutes in all (SLURM's time limits come in 
   its checkpoint, is requeued and resumes from a step > 0 to end ok; a preemption
   (``scontrol requeue``), an ``scancel`` and a SIGKILL of one job's task: the preempted cell
   resumes and ends ok, the other two fail with SLURM's reason within 2 minutes, the rest finish,
-  and the sweep exits non-zero naming the failures.
+  and the sweep exits non-zero naming the failures;
+- D: a sweep stopped by SIGTERM cancels its job, whose cell saves its checkpoint and stops.
 
 The slow cells are a method installed as a plug-in (``smgs.methods`` entry point, as a third party
 installs one) that sleeps a fifth of a second a step, in every run of its job or in the first only.
@@ -178,6 +179,15 @@ def _act_on_c(cluster, folder: Path, pids: Path, acted: dict[str, float]) -> Non
     acted["killed"] = time.monotonic()
 
 
+def _stop_d(d: Sweep, folder: Path, pids: Path, acted: dict[str, float]) -> None:
+    """Sweep D stopped by SIGTERM once its cell trains."""
+    (job,) = _jobs(folder, 1).values()
+    _training(pids, job)
+    d.proc.send_signal(signal.SIGTERM)
+    acted["sweep"] = time.monotonic()
+    acted["d_job"] = job
+
+
 @pytest.fixture(scope="module")
 def sweeps(slurm_cluster, tmp_path_factory):  # noqa: F811
     """The three sweeps, started together, and the sequential run of A's grid meanwhile."""
@@ -198,10 +208,13 @@ def sweeps(slurm_cluster, tmp_path_factory):  # noqa: F811
         c = Sweep(PATTERN + ["grid.methods=[slow_once,slow,3dgs]", "+grid.seeds_of.slow=[0,1]",
                              "+grid.seeds_of.slow_once=[0,1]", "executor.slurm.timeout_min=2",
                              f"out_dir={root / 'c'}"], env)
-        acted: dict[str, float] = {}
-        actor = threading.Thread(target=_act_on_c, args=(slurm_cluster, root / "c" / "_submitit", pids, acted),
-                                 daemon=True)
-        actor.start()
+        d = Sweep(PATTERN + ["grid.methods=[slow]", f"out_dir={root / 'd'}"], env)
+        acted: dict = {}
+        actors = [threading.Thread(target=_act_on_c, args=(slurm_cluster, root / "c" / "_submitit", pids, acted),
+                                   daemon=True),
+                  threading.Thread(target=_stop_d, args=(d, root / "d" / "_submitit", pids, acted), daemon=True)]
+        for actor in actors:
+            actor.start()
         docs = docs_cpu_example()
         a = Sweep(docs + SHORT + [f"out_dir={root / 'a'}"], env)
         threads = torch.get_num_threads()
@@ -212,9 +225,9 @@ def sweeps(slurm_cluster, tmp_path_factory):  # noqa: F811
                                      + [f"out_dir={root / 'seq'}"])
         finally:
             torch.set_num_threads(threads)
-        yield {"a": a, "b": b, "c": c, "root": root, "acted": acted, "actor": actor, "seq": seq,
+        yield {"a": a, "b": b, "c": c, "d": d, "root": root, "acted": acted, "actors": actors, "seq": seq,
                "seq_lines": seq_lines.getvalue()}
-        for s in (a, b, c):
+        for s in (a, b, c, d):
             if s.proc.poll() is None:
                 s.proc.kill()
         uninstall("smgs_slurm_test_methods")
@@ -255,7 +268,7 @@ def test_gpus_on_a_cpu_partition_are_refused_before_any_cell(slurm_cluster, tmp_
     with pytest.raises(SystemExit) as e:
         run_experiment(args)
     said = str(e.value)
-    assert said.startswith("slurm: nothing was run: sbatch refused 1 GPU(s) per job on partition debug"), said
+    assert said.startswith("invalid config, nothing was run: sbatch refused 1 GPU(s) per job on partition debug"), said
     assert "executor.slurm.gpus_per_node=auto with device=cuda" in said and "device=cpu" in said, said
     assert "Traceback" not in said and not list(find_results(tmp_path))
 
@@ -272,8 +285,8 @@ def test_without_slurm_commands_the_sweep_says_where_to_run(tmp_path, monkeypatc
 def test_preempted_resumes_cancelled_and_killed_fail_within_2_minutes(sweeps):
     c, root, acted = sweeps["c"], sweeps["root"], sweeps["acted"]
     rc = c.wait()
-    sweeps["actor"].join(timeout=10)
-    assert set(acted) == {"preempted", "cancelled", "killed"}, c.text()[-4000:]
+    sweeps["actors"][0].join(timeout=10)
+    assert {"preempted", "cancelled", "killed"} <= set(acted), c.text()[-4000:]
     assert rc == 1 and "error: 2 of 5 run(s) failed" in c.text(), c.text()[-4000:]
     lines, out = c.grid_lines(), c.text()
     cancelled, killed = KEY.format("slow", 0), KEY.format("slow", 1)
@@ -323,3 +336,44 @@ def test_past_max_requeues_a_cell_fails_saying_so(sweeps):
     assert "executor.slurm.signal_lead_s=90 does not fit a 1-min limit: jobs are warned 15 s before it" in out
     assert len(_accounting_lines(b)) == 1
     assert json.loads((cell / "checkpoint.json").read_text())["dir"]   # kept for a rerun with a longer limit
+
+
+def test_a_sweep_stopped_by_sigterm_cancels_its_jobs(sweeps, slurm_cluster):  # noqa: F811
+    d, root, acted = sweeps["d"], sweeps["root"], sweeps["acted"]
+    assert d.wait() == 128 + signal.SIGTERM, d.text()[-4000:]
+    assert "slurm: cancelled 1 job(s) of this sweep" in d.text() and "stopped by SIGTERM" in d.text()
+    job = acted["d_job"]
+    deadline = time.monotonic() + 60
+    while True:
+        state = slurm_cluster.run("squeue", "--noheader", "--states=all", f"--jobs={job}", "--format=%T").stdout
+        if state.strip() == "CANCELLED" or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
+    assert state.strip() == "CANCELLED", state
+    log = root / "d" / KEY.format("slow", 0) / "log.txt"
+    deadline = time.monotonic() + 30   # the job's cell stops after its current step
+    while "stopping for SIGTERM; checkpoint saved" not in log.read_text() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert "stopping for SIGTERM; checkpoint saved" in log.read_text(), log.read_text()[-2000:]
+
+
+def test_a_cluster_left_by_a_killed_session_is_stopped_before_the_next():
+    from slurm_cluster import _alive, _marked, clean_leftovers, unavailable
+
+    why = unavailable()
+    if why:
+        pytest.skip(why)
+    tests = Path(__file__).resolve().parent
+    code = ("import sys, time; import slurm_cluster as sc; c = sc.start(); print(c.folder, flush=True); "
+            "time.sleep(600)")
+    session = subprocess.Popen([sys.executable, "-c", code], cwd=tests, text=True, stdout=subprocess.PIPE,
+                               env={**os.environ, "PYTHONPATH": f"{tests}{os.pathsep}{REPO}"})
+    try:
+        folder = Path(session.stdout.readline().strip())
+        assert folder.name == str(session.pid), folder
+    finally:
+        session.kill()   # killed: it stops nothing
+        session.wait()
+    assert len([p for p in _marked(folder) if _alive(p)]) >= 3   # munged, slurmctld, slurmd
+    clean_leftovers()
+    assert not [p for p in _marked(folder) if _alive(p)] and not folder.exists()
