@@ -23,7 +23,9 @@ UNREACHABLE_S = 600.0   # a controller silent this long: the cells still waiting
 # job states after which a job runs no more (a requeued job passes through PENDING, not these)
 ENDED = frozenset({"COMPLETED", "CANCELLED", "FAILED", "TIMEOUT", "NODE_FAIL", "PREEMPTED", "BOOT_FAIL",
                    "DEADLINE", "OUT_OF_MEMORY", "REVOKED"})
-# pending reasons that are the queue's ordinary business, not worth a line
+# states of a job on its way, and pending reasons that are the queue's ordinary business: not worth a line
+UNDER_WAY = frozenset({"RUNNING", "COMPLETING", "CONFIGURING", "REQUEUED", "REQUEUE_FED", "RESIZING", "SIGNALING",
+                       "STAGE_OUT"})
 ORDINARY = frozenset({"None", "Priority", "Resources", "BeginTime", "JobArrayTaskLimit", "Dependency", ""})
 HINTS = {
     "CANCELLED": "cancelled (scancel, or an administrator)",
@@ -177,10 +179,11 @@ def _follow(w: Waiting, st: JobState | None, now: float, queries: SlurmQueries, 
     """One job's state: an ended or forgotten job waits ``RESULT_GRACE_S`` for its result, then fails."""
     if st is not None and st.state not in ENDED:
         w.ended_since = None
-        if st.state == "PENDING" and st.reason not in ORDINARY and st.reason not in said:
-            said.add(st.reason)
-            queries.note(f"slurm: job {w.job_id} ({w.key}) is pending: {st.reason} (the sweep waits for it; "
-                         f"scancel {w.job_id} gives it up)")
+        why = f"{st.state.lower()}: {st.reason}"
+        if st.state not in UNDER_WAY and not (st.state == "PENDING" and st.reason in ORDINARY) and why not in said:
+            said.add(why)   # held, suspended, waiting for a node that is down: said once
+            queries.note(f"slurm: job {w.job_id} ({w.key}) is {why} (the sweep waits for it; scancel {w.job_id} "
+                         "gives it up)")
         return
     w.ended_since = w.ended_since or now
     if now - w.ended_since >= RESULT_GRACE_S and not Path(w.job.paths.result_pickle).exists():
