@@ -1,30 +1,20 @@
-"""Reading a results tree and reducing runs to numbers-with-reasons.
+"""What a report's numbers are made of: a ``Value`` (a mean with its spread, or the reason there is
+none), the seeds' pooling rule (``seed_config`` / ``config_difference``) and a few names of the runs.
 
 A report never prints a number that is not there: every value is a ``Value`` that either holds a
 mean (with std and count over the runs it came from, and notes such as "2 of 3 seeds") or the
-reason it is absent ("failed: RuntimeError: ...", "LPIPS weights not installed").
+reason it is absent ("failed: RuntimeError: ...", "LPIPS weights not installed"). The values are
+computed from the results table in reports/aggregate.py; the runs are read by ``smgs.cells.tree``.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import Iterable
 
 from protocols.results import VOLATILE, RunResult
-from reports.stats import mean_sd
 from smgs.cells.tree import (MAX_TEXT, PATTERN_DATASETS, LoadedRuns, Run, identity, is_pattern,  # noqa: F401
                             load_runs, one_line, pattern_cap)
-
-
-@dataclass(frozen=True)
-class Absent:
-    """Why a run has no value for something."""
-
-    reason: str
-
-
-Getter = Callable[[RunResult], "float | Absent"]
 
 
 @dataclass(frozen=True)
@@ -52,8 +42,6 @@ class Value:
         return Value(float(x), n=1) if x is not None else Value(None, reason=reason)
 
 
-# ---- classification ---------------------------------------------------------------------------
-
 def preset_description(runs: Iterable[RunResult]) -> str:
     """What a reduced preset changes, from the runs' protocol config: "3000 steps, images ≤ 400 px"."""
     parts: list[str] = []
@@ -68,117 +56,12 @@ def preset_description(runs: Iterable[RunResult]) -> str:
     return ", ".join(parts)
 
 
-# ---- getters: one number of one run, or why not ----------------------------------------------
-
-def _status_reason(r: RunResult) -> Absent | None:
-    if r.status == "ok":
-        return None
-    err = one_line(r.error or "no error recorded")
-    return Absent(f"{r.status}: {err}")
-
-
-def _finite(x, what: str) -> "float | Absent":
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return Absent(f"{what} not a number ({x!r})")
-    return v if math.isfinite(v) else Absent(f"{what} recorded as {v}")
-
-
-METRIC_NAMES = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "flip": "FLIP"}
-
-
-def metric(name: str) -> Getter:
-    """A test-view mean from ``metrics``; absent with ``missing[name]`` as the reason."""
-    def get(r: RunResult) -> "float | Absent":
-        bad = _status_reason(r)
-        if bad:
-            return bad
-        if name in r.metrics and r.metrics[name] is not None:
-            return _finite(r.metrics[name], METRIC_NAMES.get(name, name))
-        if name in r.missing:
-            return Absent(f"{METRIC_NAMES.get(name, name)} missing: {one_line(r.missing[name])}")
-        return Absent(f"{METRIC_NAMES.get(name, name)} not recorded")
-    return get
-
-
-def field_getter(name: str, label: str, scale: float = 1.0) -> Getter:
-    """A top-level number of RunResult (num_gaussians, train_seconds, render_fps), times scale."""
-    def get(r: RunResult) -> "float | Absent":
-        bad = _status_reason(r)
-        if bad:
-            return bad
-        v = getattr(r, name)
-        if v is None:
-            return Absent(f"{label} not recorded")
-        x = _finite(v, label)
-        return x * scale if isinstance(x, float) else x
-    return get
-
-
-def consistency_getter(name: str) -> Getter:
-    """Table 4 numbers from ``result.consistency``: psnr (falls back to the test-view PSNR, the same
-    quantity), mse, flip (read from the key named by ``flip_name`` if present)."""
-    def get(r: RunResult) -> "float | Absent":
-        bad = _status_reason(r)
-        if bad:
-            return bad
-        c = r.consistency or {}
-        if not c:
-            return Absent("view consistency not computed")
-        key = c.get("flip_name", "flip") if name == "flip" else name
-        v = c.get(key, c.get("flip7") if name == "flip" else None)
-        if isinstance(v, dict) and "missing" in v:
-            return Absent(f"{key} missing: {one_line(v['missing'])}")
-        if v is None:
-            if name == "psnr":
-                return metric("psnr")(r)
-            return Absent(f"{key} not recorded")
-        return _finite(v, key)
-    return get
-
-
 def flow_estimator(r: RunResult) -> str:
     c = r.consistency or {}
     return str(c.get("estimator") or c.get("flow") or "unknown")
 
 
-# ---- aggregation ------------------------------------------------------------------------------
-
-def aggregate(runs: list[RunResult], get: Getter) -> Value:
-    """Mean ± std over runs (seeds). Runs without the value are named in a note; with none at all
-    the value is absent with their reason(s)."""
-    if not runs:
-        return Value.absent("no result in the runs directory")
-    vals: list[tuple[int, float]] = []
-    gone: list[tuple[int, str]] = []
-    for r in sorted(runs, key=lambda r: r.seed):
-        v = get(r)
-        if isinstance(v, Absent):
-            gone.append((r.seed, v.reason))
-        else:
-            vals.append((r.seed, v))
-    if not vals:
-        return Value.absent(_join_reasons(gone))
-    scored = {s for s, _ in vals}
-    split = config_difference([r for r in runs if r.seed in scored])
-    if split:
-        return Value.absent(split)
-    mean, std = mean_sd([x for _, x in vals])
-    notes = ()
-    if gone:
-        notes = (f"{len(vals)} of {len(runs)} seeds; {_join_reasons(gone)}",)
-    return Value(mean, std, len(vals), None, notes, tuple(vals))
-
-
-def _join_reasons(gone: list[tuple[int, str]]) -> str:
-    reasons = sorted({reason for _, reason in gone})
-    if len(reasons) == 1 and len(gone) > 1:
-        return reasons[0]
-    if len(gone) == 1:
-        return gone[0][1]
-    return "; ".join(f"seed {s}: {reason}" for s, reason in gone)
-
+# ---- pooling: which seeds may be averaged ------------------------------------------------------
 
 LOCATIONS = ("dataset.path", "ply.path")
 """Config keys that say where a run read its input, not what (a grid split over machines)."""

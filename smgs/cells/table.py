@@ -82,7 +82,7 @@ def _with_attrs(df: "pd.DataFrame", loaded: LoadedRuns) -> "pd.DataFrame":
 
 def cells(loaded: LoadedRuns) -> "pd.DataFrame":
     """One row per loaded run, in ``loaded.runs`` order (row i is ``loaded.runs[i]``)."""
-    return _frame([cell_record(run.result, run.path) for run in loaded.runs], CELL_COLUMNS)
+    return frame([cell_record(run.result, run.path) for run in loaded.runs], CELL_COLUMNS)
 
 
 def views(loaded: LoadedRuns) -> "pd.DataFrame":
@@ -98,17 +98,17 @@ def views(loaded: LoadedRuns) -> "pd.DataFrame":
         for i in range(n):
             recs.append({**base, "view": names[i] if i < len(names) else None, "view_index": i,
                          **{m: _at(pv.get(m), i) for m in METRICS}})
-    return _frame(recs, VIEW_COLUMNS)
+    return frame(recs, VIEW_COLUMNS)
 
 
 def curve_points(loaded: LoadedRuns) -> "pd.DataFrame":
     recs = [{**_identity(run.result), "step": c.step, "seconds": _number(c.seconds), "psnr": _number(c.psnr),
              "num_gaussians": c.num_gaussians, "path": str(run.path)}
             for run in loaded.runs for c in run.result.curve]
-    return _frame(recs, CURVE_COLUMNS)
+    return frame(recs, CURVE_COLUMNS)
 
 
-def _frame(records: list[dict], columns: dict[str, str]) -> "pd.DataFrame":
+def frame(records: list[dict], columns: dict[str, str]) -> "pd.DataFrame":
     import pandas as pd
 
     df = pd.DataFrame.from_records(records, columns=list(columns))
