@@ -9,10 +9,12 @@ from ``cells`` (reports/aggregate.py). pandas is imported here only, so ``import
 
 from __future__ import annotations
 
+import io
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable
 
+from smgs.atomic import atomic_write_bytes
 from smgs.cells.result import RunResult
 from smgs.cells.tree import LoadedRuns, is_pattern, load_runs, pattern_cap
 
@@ -113,6 +115,44 @@ def frame(records: list[dict], columns: dict[str, str]) -> "pd.DataFrame":
 
     df = pd.DataFrame.from_records(records, columns=list(columns))
     return df.astype(columns) if len(df) else pd.DataFrame({c: pd.Series(dtype=t) for c, t in columns.items()})
+
+
+# ---- writing a table ------------------------------------------------------------------------------
+
+FORMATS = ("csv", "parquet", "json")
+PARQUET_HELP = ("parquet needs pyarrow (or fastparquet), which smgs does not install (pyarrow is a 55 MB wheel "
+                "that nothing else here needs): pip install pyarrow, or pip install 'smgs[parquet]'; or write "
+                "--format csv or json")
+
+
+class ParquetUnavailable(ImportError):
+    """Parquet asked for where pandas finds no parquet engine."""
+
+
+def encode(df: "pd.DataFrame", fmt: str) -> bytes:
+    """``df`` as a file of ``fmt``: csv (missing values empty), json (a list of records, missing values
+    null) or parquet (the dtypes kept)."""
+    if fmt == "csv":
+        return df.to_csv(index=False).encode()
+    if fmt == "json":
+        return df.to_json(orient="records", indent=1).encode()
+    if fmt == "parquet":
+        buf = io.BytesIO()
+        try:
+            df.to_parquet(buf, index=False)
+        except ImportError as e:
+            raise ParquetUnavailable(PARQUET_HELP) from e
+        return buf.getvalue()
+    raise ValueError(f"unknown format {fmt!r}: one of {', '.join(FORMATS)}")
+
+
+def write(df: "pd.DataFrame", path: Path | str, fmt: str | None = None) -> Path:
+    """Write ``df`` to ``path`` whole or not at all (``smgs.atomic``); ``fmt`` defaults to the suffix of
+    ``path`` (.csv, .parquet, .json), else csv."""
+    path = Path(path)
+    fmt = fmt or (path.suffix[1:].lower() if path.suffix[1:].lower() in FORMATS else "csv")
+    atomic_write_bytes(path, encode(df, fmt))
+    return path
 
 
 # ---- one cell ---------------------------------------------------------------------------------------
