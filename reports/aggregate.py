@@ -105,7 +105,7 @@ def _value(row: dict, q: Quantity) -> tuple[float | None, str | None]:
             return None, "view consistency not computed"
         key = row["consistency_flip_name"] if q.column == "flip" else q.column
         column = f"consistency_{q.column}"
-        if not _set(row[column]) and row[f"{column}_missing"] == NOT_RECORDED and q.column == "psnr":
+        if q.column == "psnr" and _set(row[f"{column}_missing"]) and row[f"{column}_missing"] == NOT_RECORDED:
             return _value(row, QUANTITIES["psnr"])   # the test-view PSNR: the same quantity
         return _recorded(row, column, key, q.scale)
     if q.kind == "field" and not _set(row[q.column]):

@@ -102,6 +102,9 @@ def test_consistency_values_and_missing():
     no_psnr = _run(0, 24.0, consistency={"mse": 0.1, "estimator": "geometric"})
     assert q(no_psnr, "consistency_psnr").value == 24.0        # the test-view PSNR, the same quantity
     assert q(no_psnr, "consistency_flip").reason == "flip not recorded"
+    nan = _run(0, 24.0, consistency={"psnr": float("nan"), "mse": "n/a", "estimator": "geometric"})
+    assert q(nan, "consistency_psnr").reason == "psnr recorded as nan"
+    assert q(nan, "consistency_mse").reason == "mse not a number ('n/a')"
 
 
 def test_pattern_cap_conventions():
