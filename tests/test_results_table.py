@@ -65,6 +65,8 @@ def test_one_row_per_cell_with_pinned_columns(sweeps):
     # 21 cells of the main tree + 12 of the seed tree, less the two fern seed-0 cells both hold
     assert len(df) == 31 and not df.duplicated(["method", "dataset", "scene", "budget", "cap", "preset", "seed"]).any()
     assert len(df.attrs["duplicates"]) == 2 and df.attrs["unreadable"] == []
+    both = smgs.results([sweeps / "main", sweeps / "seeds"])    # a list of runs folders, as one
+    assert both.drop(columns="path").equals(df.drop(columns="path"))
     assert df["status"].value_counts().to_dict() == {"ok": 28, "failed": 2, "skipped": 1}
     assert df.loc[df.experiment == "seeds", "threads"].eq(2).all() and df.experiment.isna().sum() == 19
 

@@ -62,8 +62,9 @@ def curves(*runs_dirs: Path | str) -> "pd.DataFrame":
     return _with_attrs(curve_points(loaded), loaded)
 
 
-def read(runs_dirs: Iterable[Path | str]) -> LoadedRuns:
-    dirs = [Path(d) for d in runs_dirs]
+def read(runs_dirs: Iterable[Path | str | Iterable[Path | str]]) -> LoadedRuns:
+    """The runs below the directories (given one by one, or as a list)."""
+    dirs = [Path(d) for x in runs_dirs for d in ([x] if isinstance(x, (str, Path)) else x)]
     if not dirs:
         raise TypeError("smgs.results needs at least one runs directory, e.g. smgs.results('runs/my_sweep')")
     for d in dirs:
