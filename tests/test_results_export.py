@@ -103,7 +103,8 @@ def test_the_notebook_example_in_the_docs_runs(tmp_path):
     code = notebook_example()
     assert 8 <= len(code.strip().splitlines()) <= 12 and 'smgs.results("runs")' in code
     make_tree(tmp_path / "runs" / "budget5")
-    env = {**os.environ, "MPLBACKEND": "Agg", "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    path = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
+    env = {**os.environ, "MPLBACKEND": "Agg", "PYTHONPATH": path}
     done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr

@@ -26,22 +26,23 @@ CONSISTENCY = ("psnr", "mse", "flip", "pop_ratio", "popped_fraction")
 NOT_RECORDED = "not recorded"
 
 # what names a cell (the experiment that ran it beside: a runs folder may hold several sweeps)
-IDENTITY: dict[str, str] = {"method": "string", "dataset": "string", "scene": "string", "budget": "string",
+KEY_COLUMNS: dict[str, str] = {"method": "string", "dataset": "string", "scene": "string", "budget": "string",
                             "cap": "Int64", "preset": "string", "seed": "int64", "experiment": "string"}
 CELL_COLUMNS: dict[str, str] = {
-    **IDENTITY, "status": "string", "reason": "string",
+    **KEY_COLUMNS, "status": "string", "reason": "string",
     **{m: "float64" for m in METRICS}, **{f"{m}_missing": "string" for m in METRICS}, "lpips_net": "string",
     "num_gaussians": "Int64", "train_seconds": "float64", "build_seconds": "float64", "render_fps": "float64",
     "peak_memory_mb": "float64", "steps": "Int64",
-    **{f"consistency_{k}": "float64" for k in CONSISTENCY}, **{f"consistency_{k}_missing": "string" for k in CONSISTENCY},
+    **{f"consistency_{k}": "float64" for k in CONSISTENCY},
+    **{f"consistency_{k}_missing": "string" for k in CONSISTENCY},
     "consistency_flip_name": "string", "consistency_flow": "string", "consistency_mask": "string",
     "frac_within_kmax": "float64", "collapsed": "boolean",
     "device": "string", "render_device": "string", "backend": "string", "renderer": "string", "threads": "Int64",
     "config_hash": "string", "inputs_fingerprint": "string", "source": "string", "git": "string", "path": "string",
 }
-VIEW_COLUMNS: dict[str, str] = {**IDENTITY, "status": "string", "reason": "string", "view": "string",
+VIEW_COLUMNS: dict[str, str] = {**KEY_COLUMNS, "status": "string", "reason": "string", "view": "string",
                                 "view_index": "Int64", **{m: "float64" for m in METRICS}, "path": "string"}
-CURVE_COLUMNS: dict[str, str] = {**IDENTITY, "step": "int64", "seconds": "float64", "psnr": "float64",
+CURVE_COLUMNS: dict[str, str] = {**KEY_COLUMNS, "step": "int64", "seconds": "float64", "psnr": "float64",
                                  "num_gaussians": "Int64", "path": "string"}
 
 
