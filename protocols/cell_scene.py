@@ -37,7 +37,18 @@ def load_scene_for(cfg: dict) -> Scene:
     """The scene of a cell (dataset section + the cell's scene name + protocol), with the video
     trajectory the consistency metrics follow when they are on."""
     fmt, request = scene_format(cfg)
-    return make_scene(fmt, request, TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None)
+    return make_scene(fmt, request, TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None,
+                      where=scene_origin(cfg, fmt))
+
+
+def scene_origin(cfg: dict, fmt: SceneFormat) -> str:
+    """The cell's scene as the config names it, for an error: ``dataset.path=...`` (or the dataset
+    and scene), the format's kind and, for a plug-in's, its distribution."""
+    from smgs.data.registry import plugin_source
+
+    kind = str(cfg["dataset"]["kind"])
+    source = plugin_source(kind)
+    return f"{_scene_key(cfg, fmt)} (scene format {kind!r}{', ' + source if source else ''})"
 
 
 def scene_problem(cfg: dict) -> str | None:

@@ -77,14 +77,26 @@ class ChecksScenes(Protocol):
         ...
 
 
-def make_scene(fmt: SceneFormat, request: SceneRequest, trajectory_between: int | None = None) -> Scene:
-    """The format's scene, with a video trajectory when ``trajectory_between`` is set: the scene's
-    own where its format made one (the procedural scene's ring), else ``trajectory_between`` frames
-    between consecutive test cameras (a flat scene, one fixed camera, has none)."""
-    scene = fmt.load(request)
+def make_scene(fmt: SceneFormat, request: SceneRequest, trajectory_between: int | None = None,
+               where: str | None = None) -> Scene:
+    """The format's scene, checked against the scene contract (``smgs.data.contract``: whatever the
+    format, a ``SceneContractError`` naming ``where``, default ``describe_request``), with a video
+    trajectory when ``trajectory_between`` is set: the scene's own where its format made one (the
+    procedural scene's ring), else ``trajectory_between`` frames between consecutive test cameras (a
+    flat scene, one fixed camera, has none)."""
+    from smgs.data.contract import check_scene_contract
+
+    scene = check_scene_contract(fmt.load(request), where or describe_request(fmt, request),
+                                 needs_test=bool(request.test_every))
     if trajectory_between is not None and not scene.flat and not scene.trajectory:
         with_trajectory(scene, trajectory_between)
     return scene
+
+
+def describe_request(fmt: SceneFormat, request: SceneRequest) -> str:
+    """The scene ``request`` asks of ``fmt``, for an error: its name, dataset and format class."""
+    cls = type(fmt)
+    return f"scene {request.scene!r} of {request.dataset!r} (scene format {cls.__module__}.{cls.__qualname__})"
 
 
 def with_trajectory(scene: Scene, between: int) -> None:
