@@ -17,6 +17,7 @@ from typing import Any, Iterator
 from smgs.env import versions
 from protocols.cell_lock import cell_lock
 from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_in
+from protocols.grid import PRETRAINED
 from protocols.live_cells import live_cell
 from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
                                read_result, write_result)
@@ -127,6 +128,7 @@ def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: s
         return {"key": key, "status": "ok", "skipped": True}   # finished by the lock's last holder
     kept = _finished_result(run_dir / RESULTS_FILE)
     if kept is not None and not force:
+        _check_same_kind(kept, cfg, run_dir)
         _check_same_model(kept, cfg, run_dir)
     work = run_dir if kept is None else rerun_dir(run_dir)
     if kept is not None:
@@ -211,6 +213,26 @@ def _finished_result(res_path: Path) -> RunResult | None:
     except (OSError, ValueError):
         return None
     return old if old.status == "ok" else None
+
+
+def _check_same_kind(kept: RunResult, cfg: dict, run_dir: Path) -> None:
+    """A cell holds one kind of result: a trained run is never replaced by the evaluation of a PLY
+    (``protocols.evaluate_ply``), nor an evaluation by a trained run, without ``force``;
+    ``LeftAlone`` names both and the fix."""
+    evaluation, ply = bool(kept.source), (cfg.get("ply") or {}).get("path")
+    if evaluation == bool(ply):
+        return
+    if ply:
+        raise LeftAlone(f"{run_dir} holds a trained run ({kept.method}, {kept.steps} steps, config {kept.config_hash}); "
+                        f"the evaluation of {ply} would replace it (its results.json, checkpoint and config.yaml); "
+                        "nothing was changed. A cell holds one kind of result: evaluate the file into a cell of its "
+                        f"own, budget.name={PRETRAINED} (the default) or budget.name={PRETRAINED}-NAME, or add --force "
+                        "to replace the trained run with the evaluation")
+    raise LeftAlone(f"{run_dir} holds the evaluation of {kept.source.get('ply')} (sha256 "
+                    f"{str(kept.source.get('sha256'))[:12]}…, not trained here); training {cfg['method']['name']} "
+                    "here would replace it; nothing was changed. A cell holds one kind of result: add --force to "
+                    "replace the evaluation with the trained run (and evaluate the file again with "
+                    f"budget.name={PRETRAINED}-NAME to keep its row)")
 
 
 def _check_same_model(kept: RunResult, cfg: dict, run_dir: Path) -> None:
