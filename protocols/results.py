@@ -7,20 +7,17 @@ One run = one cell of an experiment grid (method × dataset/scene × budget × s
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 from smgs.atomic import atomic_write_text
+from smgs.identity import VOLATILE, config_hash  # noqa: F401 (defined with a cell's identity; read from here too)
 
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"
 POINTER = "checkpoint.json"   # in a run directory: which checkpoint is its last
-# Keys of a cell's config that do not change its result (where and how it runs).
-VOLATILE = ("force", "executor", "report", "report_builder", "out_dir", "data_root", "on_missing", "grid",
-            "seeds", "experiment_name", "checkpoint_every", "export_ply", "on_busy")
 
 
 @dataclass
@@ -46,6 +43,11 @@ class RunResult:
     source: where the model came from when this run did not train it (``kind: "pretrained"``,
         ``ply``, ``sha256``, ``trained_here: false``; ``protocols.evaluate_ply``); empty when the
         run trained it.
+    inputs: the fingerprint of the scene's files the run read (``smgs.data.fingerprint``: ``files``
+        name -> size and sha256, ``digest``, ``folder``; ``files`` null with a ``note`` where the
+        format lists none); empty in results written before it was recorded.
+    config_hash: the cell's identity (``smgs.identity.cell_key``), with ``inputs`` what a rerun
+        compares to skip it and the report to pool its seeds.
     """
 
     method: str
@@ -76,6 +78,7 @@ class RunResult:
     versions: dict[str, str] = field(default_factory=dict)
     data: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=dict)
+    inputs: dict[str, Any] = field(default_factory=dict)
     schema: int = SCHEMA_VERSION
     # fields this smgs does not know (added by a newer one within the same schema): kept, written back
     other_fields: dict[str, Any] = field(default_factory=dict, repr=False)
@@ -107,12 +110,6 @@ class NewerResults(ValueError):
         where = "" if path is None else f"{path}: "
         super().__init__(f"{where}written by a newer smgs (results schema {schema}; this smgs reads schema "
                          f"{SCHEMA_VERSION}): upgrade smgs to read it or to rerun its cell")
-
-
-def config_hash(config: dict) -> str:
-    """Stable hash of a resolved config (key order does not matter)."""
-    blob = json.dumps(config, sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
 
 
 def write_result(run_dir: Path | str, result: RunResult) -> Path:

@@ -132,6 +132,11 @@ def model_file(model_dir: Path, name: str) -> Path:
     return b if b.is_file() else Path(model_dir) / f"{name}.txt"
 
 
+def model_files(model_dir: Path) -> list[Path]:
+    """The files of a model that pycolmap reads (``model_file`` of each: .bin first)."""
+    return [p for p in (model_file(model_dir, f) for f in _MODEL_FILES) if p.is_file()]
+
+
 QUAT_TOLERANCE = 0.01
 """A rotation quaternion whose length is within this of 1 is normalised (and the scene's meta says how
 many were); one further off, of length 0 or not finite, is refused. COLMAP writes unit quaternions,

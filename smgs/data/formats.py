@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from pathlib import Path
+from typing import Any, Protocol, Sequence, runtime_checkable
 
 from smgs.data.datasets import DatasetSpec
 from smgs.data.scene import Scene
@@ -75,6 +76,29 @@ class ChecksScenes(Protocol):
 
     def missing(self, request: SceneRequest) -> str | None:
         ...
+
+
+@runtime_checkable
+class ListsInputs(Protocol):
+    """Optional, beside ``SceneFormat``: the files ``load(request)`` reads (images, camera model,
+    points), without decoding an image; the harness fingerprints them (``smgs.data.fingerprint``) to
+    notice a scene changed on disk. A format that makes its scenes returns none."""
+
+    def inputs(self, request: SceneRequest) -> Sequence[Path]:
+        ...
+
+
+def scene_inputs(fmt: SceneFormat, request: SceneRequest) -> dict[str, Any]:
+    """The fingerprint of the files the format reads for ``request`` (``ListsInputs``); for a format
+    that does not list them, a record saying its scenes are not fingerprinted."""
+    from smgs.data.fingerprint import fingerprint, not_listed
+
+    inputs = getattr(fmt, "inputs", None)
+    if not callable(inputs):
+        cls = type(fmt)
+        return not_listed(f"scene format {cls.__module__}.{cls.__qualname__} lists no input files (inputs(request), "
+                          "docs/adding-a-scene-format.md): a change on disk goes unnoticed")
+    return fingerprint(inputs(request))
 
 
 def make_scene(fmt: SceneFormat, request: SceneRequest, trajectory_between: int | None = None,
