@@ -168,3 +168,18 @@ def test_a_checkpoint_resumes_whatever_cuda_variant_a_cpu_run_asked(tmp_path, co
     s = run_experiment(tiny)
     assert s[0]["status"] == "ok", s
     assert counting.calls == [2, 3, 4, 5]
+
+
+def test_seeds_differing_only_in_what_changes_no_number_are_pooled():
+    """Before: eval.viewer_views, or a CUDA kernel set asked on a CPU run, split a pooled row."""
+    from protocols.results import RunResult
+    from reports.runs import config_difference
+
+    def seed(s: int, *extra: str) -> RunResult:
+        cfg = _cell(*CONFIGS["procedural"], f"seed={s}", *extra)
+        return RunResult("softmax_gs", "procedural", "blocks", "full", s, config=cfg, hparams="3dgs2023+softmaxgs")
+
+    assert config_difference([seed(0), seed(1, "eval.viewer_views=0"), seed(2, "renderer.kernels=v2"),
+                              seed(3, "eval.save_renders=false")]) is None
+    assert config_difference([seed(0), seed(1, "protocol.steps=20")]).startswith(
+        "seeds trained under different configs, not pooled: protocol.steps (seed 0: 300; seed 1: 20)")
