@@ -79,7 +79,8 @@ def hostile(tmp_path, monkeypatch):
     ("dot-name", 24, "views 'v0.png' and './v0.png' are one name (v0.png)"),
     ("test-trains", 24, "view 'v0.png' is both a training and a test view"),
     ("same-stem", 24, "test views 'a/v.png' and 'b/v.png' would write one render file (renders/v.png)"),
-    ("focal-tiny", 24, "views 'v0.png', 'v1.png', 'v2.png' and 5 more: fx = 1e-09 px gives the 24-px width a field of view of 180°, outside the 0.5°–170°"),
+    ("focal-tiny", 24, "views 'v0.png', 'v1.png', 'v2.png' and 5 more: fx = 1e-09 px gives the 24-px width a field "
+                       "of view of 180°, outside the 0.5°–170°"),
     ("focal-huge", 24, "fx = 1e+12 px gives the 24-px width a field of view of 1.38e-09°, outside the 0.5°–170°"),
     ("nan-pose", 24, "and 5 more: its pose (viewmat, world-to-camera) holds NaN or infinite values"),
     ("scaled-pose", 24, "its pose's rotation is no rotation (|RᵀR − I| up to 3"),

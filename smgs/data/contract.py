@@ -148,7 +148,7 @@ def _view_problems(v: View) -> list[str]:
         out.append(f"{w}x{h} px, under the {MIN_SIDE} px a side that a score needs (one renderer tile; "
                    "SSIM's window is 11 px); load larger images")
     if img.is_floating_point() and not bool(torch.isfinite(img).all()):
-        out.append(f"its image holds NaN or infinite values")
+        out.append("its image holds NaN or infinite values")
     return out + _intrinsics_problems(cam) + _pose_problems(cam)
 
 
@@ -166,7 +166,7 @@ def _intrinsics_problems(cam: Camera) -> list[str]:
 def _pose_problems(cam: Camera) -> list[str]:
     V = cam.viewmat.detach().double().cpu()
     if not bool(torch.isfinite(V).all()):
-        return [f"its pose (viewmat, world-to-camera) holds NaN or infinite values"]
+        return ["its pose (viewmat, world-to-camera) holds NaN or infinite values"]
     R = V[:3, :3]
     off = float((R.T @ R - torch.eye(3, dtype=R.dtype)).abs().max())
     det = float(torch.linalg.det(R))
@@ -180,7 +180,11 @@ def _pose_problems(cam: Camera) -> list[str]:
 
 def _scene_problems(scene: Scene) -> list[str]:
     out = []
-    if not (isinstance(scene.extent, (int, float)) and math.isfinite(scene.extent) and scene.extent > 0):
+    try:
+        extent = float(scene.extent)
+    except (TypeError, ValueError):
+        extent = math.nan
+    if not (math.isfinite(extent) and extent > 0):
         out.append(f"scene.extent = {scene.extent!r}; it is the cameras' spread (smgs.data.camera_extent), a "
                    "positive number")
     pts = scene.points
