@@ -12,9 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable
 
-from protocols.results import VOLATILE, RunResult
+from protocols.results import RunResult
 from smgs.cells.tree import (MAX_TEXT, PATTERN_DATASETS, LoadedRuns, Run, identity, is_pattern,  # noqa: F401
                             load_runs, one_line, pattern_cap)
+from smgs.identity import SeedRecord, pooling_key, seeds_difference
 
 
 @dataclass(frozen=True)
@@ -63,52 +64,16 @@ def flow_estimator(r: RunResult) -> str:
 
 # ---- pooling: which seeds may be averaged ------------------------------------------------------
 
-LOCATIONS = ("dataset.path", "ply.path")
-"""Config keys that say where a run read its input, not what (a grid split over machines)."""
-
-
 def seed_config(r: RunResult) -> dict[str, str]:
-    """A run's config as dotted keys, without its seed, the keys that do not change a result
-    (``protocols.results.VOLATILE``) and the input's location (``LOCATIONS``); the device by its
-    kind (``cuda:1`` is ``cuda``)."""
-    flat: dict[str, str] = {}
-
-    def walk(prefix: str, x) -> None:
-        if isinstance(x, dict) and x:
-            for k, v in x.items():
-                walk(f"{prefix}.{k}" if prefix else str(k), v)
-        else:
-            flat[prefix] = repr(x)
-
-    cfg = {k: v for k, v in (r.config or {}).items() if k not in VOLATILE and k != "seed"}
-    if isinstance(cfg.get("device"), str):
-        cfg["device"] = cfg["device"].split(":")[0]
-    walk("", cfg)
-    for k in LOCATIONS:
-        flat.pop(k, None)
-    if r.hparams:
-        flat["hparams"] = repr(r.hparams)
-    return flat
+    """What the seeds of one row must share, as dotted keys (``smgs.identity.pooling_key``: the
+    config without its seed, the keys that change no number and the inputs' locations; the device
+    by its kind)."""
+    return pooling_key(r.config or {}, r.hparams)
 
 
 def config_difference(runs: list[RunResult], shown: int = 3) -> str | None:
-    """Why the seeds ``runs`` of one row must not be pooled: the config keys other than the seed in
-    which they differ, with each seed's value (None when they agree; runs that record no config,
-    written before configs were recorded, are not compared)."""
-    configs = [(r.seed, seed_config(r)) for r in sorted(runs, key=lambda r: r.seed) if r.config]
-    if len(configs) < 2:
-        return None
-    keys = sorted({k for _, c in configs for k in c})
-    differ = [k for k in keys if len({c.get(k, "<not set>") for _, c in configs}) > 1]
-    if not differ:
-        return None
-    parts = []
-    for k in differ[:shown]:
-        by_value: dict[str, list[int]] = {}
-        for seed, c in configs:
-            by_value.setdefault(c.get(k, "<not set>"), []).append(seed)
-        parts.append(f"{k} (" + "; ".join(f"seed{'s' if len(ss) > 1 else ''} {', '.join(map(str, ss))}: "
-                                          f"{one_line(v, 60)}" for v, ss in by_value.items()) + ")")
-    more = f"; and {len(differ) - shown} more key(s)" if len(differ) > shown else ""
-    return ("seeds trained under different configs, not pooled: " + "; ".join(parts) + more
-            + " (rerun them under one config)")
+    """Why the seeds ``runs`` of one row must not be pooled (``smgs.identity.seeds_difference``): the
+    config keys other than the seed in which they differ, with each seed's value, else the input
+    files whose content differs (None when they agree; runs that record no config or no inputs,
+    written before those were recorded, are not compared on them)."""
+    return seeds_difference([SeedRecord(r.seed, r.config or {}, r.hparams, r.inputs or None) for r in runs], shown)

@@ -108,7 +108,8 @@ def test_values_and_why_a_value_is_missing(sweeps):
 def test_a_recorded_nan_and_a_text_are_told_from_not_recorded(tmp_path):
     write_result(tmp_path / "a", RunResult(method="3dgs", dataset="d", scene="s", budget="full", seed=0,
                                            metrics={"psnr": float("nan"), "ssim": "n/a"}, config_hash="abc",
-                                           data={"fingerprint": {"sha256": "f00d"}}))
+                                           inputs={"files": {"a.png": {"size": 3, "sha256": "beef"}},
+                                                   "digest": "f00d", "folder": "/x"}))
     (row,) = smgs.results(tmp_path).itertuples()
     assert math.isnan(row.psnr) and row.psnr_missing is smgs_na()      # recorded as NaN: kept
     assert row.ssim_missing == "not a number ('n/a')" and row.lpips_missing == "not recorded"

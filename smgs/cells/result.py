@@ -43,6 +43,11 @@ class RunResult:
     source: where the model came from when this run did not train it (``kind: "pretrained"``,
         ``ply``, ``sha256``, ``trained_here: false``; ``protocols.evaluate_ply``); empty when the
         run trained it.
+    inputs: the fingerprint of the scene's files the run read (``smgs.data.fingerprint``: ``files``
+        name -> size and sha256, ``digest``, ``folder``; ``files`` null with a ``note`` where the
+        format lists none); empty in results written before it was recorded.
+    config_hash: the cell's identity (``smgs.identity.cell_key``), with ``inputs`` what a rerun
+        compares to skip it and the report to pool its seeds.
     """
 
     method: str
@@ -73,6 +78,7 @@ class RunResult:
     versions: dict[str, str] = field(default_factory=dict)
     data: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=dict)
+    inputs: dict[str, Any] = field(default_factory=dict)
     schema: int = SCHEMA_VERSION
     # fields this smgs does not know (added by a newer one within the same schema): kept, written back
     other_fields: dict[str, Any] = field(default_factory=dict, repr=False)

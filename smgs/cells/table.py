@@ -230,16 +230,11 @@ def _consistency(r: RunResult, ok: bool) -> dict[str, Any]:
 
 
 def inputs_fingerprint(r: RunResult) -> str | None:
-    """The fingerprint of the inputs a cell read (DESIGN.md: part of a cell's identity), where its
-    results.json records one: a top-level ``inputs_fingerprint`` or ``fingerprint`` field (a string,
-    or a dict with its digest under ``sha256``), else ``data["fingerprint"]``."""
-    other = r.other_fields or {}
-    for v in (other.get("inputs_fingerprint"), other.get("fingerprint"), _dict(r.data).get("fingerprint")):
-        if isinstance(v, dict):
-            v = v.get("sha256") or v.get("digest")
-        if v:
-            return str(v)
-    return None
+    """The digest of the fingerprint of the files a cell read (results.json's ``inputs``,
+    ``smgs.data.fingerprint``); None where there is none: a result written before it was recorded, or
+    a scene whose format lists no input files (``inputs["note"]`` says why)."""
+    digest = _dict(r.inputs).get("digest")
+    return None if digest is None else str(digest)
 
 
 def _threads(r: RunResult) -> Any:
