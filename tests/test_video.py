@@ -1,16 +1,26 @@
-"""Videos: the encoder (PyAV, VP9 in WebM) keeps frame count and loses little; the frames of the
-consistency metric are written in order whatever order they come in."""
+"""Videos: the encoder (PyAV, VP9 in WebM) keeps frame count and loses little; a run with view
+consistency encodes the frames its metric rendered; ``smgs render`` puts runs of one scene side by side
+and refuses what it cannot show."""
 
 from __future__ import annotations
 
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
+from protocols.results import RunResult, read_result, write_result
 from smgs.io.video import VideoWriter, encoded_size, max_bytes_per_second, read_video, shrink
 
-
+SMOKE = ["+experiment=smoke", "grid.methods=[3dgs,softmax_gs]", "grid.seeds_of={3dgs:[0,1],softmax_gs:[0]}", "report=false",
+         "protocol.steps=5", "dataset.width=96", "dataset.height=72", "dataset.n_views=10", "eval.consistency=true",
+         "eval.fps_repeats=1", "eval.flip=false"]
+PATTERN = ["+experiment=patterns", "grid.methods=[3dgs]", "grid.budgets=[cap4]", "grid.seeds=[0]",
+           "grid.scenes=[circle4]", "dataset.size=16", "dataset.steps=12", "report=false", "eval.fps_repeats=1",
+           "eval.flip=false"]
 MIN_PSNR = 35.0   # the codec's loss a frame may carry (dB)
 
 
@@ -89,3 +99,89 @@ def test_a_failure_to_write_stops_the_video_not_the_scoring(tmp_path, monkeypatc
     with pytest.raises(RuntimeError, match="could not be written .OSError: .Errno 28. No space left on device"):
         tap.finish()
     assert list((tmp_path / "video").iterdir()) == []
+
+
+# ---- runs, smgs render, the report --------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory) -> Path:
+    from protocols.run import run_experiment
+
+    root = tmp_path_factory.mktemp("video") / "runs"
+    assert [s["status"] for s in run_experiment(SMOKE + [f"out_dir={root}"])] == ["ok"] * 3
+    assert [s["status"] for s in run_experiment(PATTERN + [f"out_dir={root}"])] == ["ok"]
+    return root
+
+
+def smoke_run(root: Path, method: str = "3dgs", seed: int = 0) -> Path:
+    return root / f"procedural/blocks/{method}/full/seed{seed}"
+
+
+def test_a_run_encodes_the_frames_its_consistency_metric_rendered(tree):
+    from protocols.run_video import read_trajectory
+
+    run = smoke_run(tree)
+    r = read_result(run / "results.json")
+    v = r.consistency["video"]
+    n = len(read_trajectory(run / "trajectory.json"))
+    assert n == r.consistency["trajectory"]["n_frames"] == v["frames"] == 48
+    for key in ("frames_file", "error_file"):
+        frames, fps = read_video(run / v[key])
+        assert len(frames) == n and fps == v["fps"] == 30
+    # the poster is frame 0 exactly as the metric quantised it (PNG, lossless); the video's is within the codec's loss
+    poster = np.asarray(Image.open(run / v["poster"]).convert("RGB"))
+    first = read_video(run / v["frames_file"])[0][0]
+    assert poster.shape == (72, 96, 3) and psnr(shrink(first, 96, 72), poster) >= MIN_PSNR
+    assert v["bytes"] > 0 and v["seconds"] > 0 and 0 < v["seconds"] < r.diagnostics["run_seconds"]
+
+
+def test_smgs_render_puts_runs_of_one_scene_side_by_side(tree, tmp_path, capsys):
+    from protocols.render_video import Mosaic, finished_run, path_cameras, rebuild
+    from smgs.metrics.image import to_uint8
+    from smgs_cli.main import main
+
+    runs = [smoke_run(tree, "3dgs"), smoke_run(tree, "softmax_gs")]
+    out = tmp_path / "blocks.webm"
+    assert main(["render", *map(str, runs), "--out", str(out)]) == 0
+    assert f"{out}: 48 frames" in capsys.readouterr().out
+    frames, _ = read_video(out)
+    fr = [finished_run(r) for r in runs]
+    method, scene = rebuild(fr[0], "cpu")
+    cams = path_cameras(fr[0], scene, "trajectory")
+    assert len(frames) == len(cams) == 48   # the trajectory's frames, each once
+    mosaic = Mosaic([f.label() for f in fr], cams[0].width, cams[0].height)
+    for i, run in enumerate(fr):
+        m = method if i == 0 else rebuild(run, "cpu")[0]
+        want = to_uint8(m.render(cams[0]).rgb.clamp(0, 1)).numpy()
+        x, y, w, h = mosaic.box(i)
+        got = psnr(shrink(frames[0][y:y + h, x:x + w], cams[0].width, cams[0].height), want)
+        print(f"smgs render, tile {i}: first frame {got:.1f} dB against the renderer's frame")
+        assert got >= MIN_PSNR
+    # the test views in order
+    assert main(["render", str(runs[0]), "--path", "test", "--out", str(tmp_path / "test.webm")]) == 0
+    assert len(read_video(tmp_path / "test.webm")[0]) == len(scene.test)
+
+
+def test_smgs_render_refuses_what_it_cannot_show(tree, tmp_path, capsys):
+    from smgs_cli.main import main
+
+    run = smoke_run(tree)
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copy(run / "checkpoint.json", other)
+    r = read_result(run / "results.json")
+    r.scene = "elsewhere"
+    write_result(other, r)
+    failed = tmp_path / "failed"
+    write_result(failed, RunResult("3dgs", "procedural", "blocks", "full", 0, status="failed", error="boom"))
+    unfinished = tmp_path / "unfinished"
+    unfinished.mkdir()
+    pattern = tree / "patterns/circle4/3dgs/cap4/seed0"
+    cases = [([run, other], "different scenes"), ([unfinished], "unfinished run (no results.json"),
+             ([failed], "the run is failed (boom): it has no final model to render"),
+             ([pattern], "no video trajectory: the scene circle4 is flat")]
+    for dirs, message in cases:
+        assert main(["render", *map(str, dirs), "--out", str(tmp_path / "x.webm")]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.webm").exists()
