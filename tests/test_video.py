@@ -1,9 +1,13 @@
 """Videos: the encoder (PyAV, VP9 in WebM) keeps frame count and loses little; a run with view
 consistency encodes the frames its metric rendered; ``smgs render`` puts runs of one scene side by side
-and refuses what it cannot show."""
+and refuses what it cannot show; report.html plays the videos in step in headless Chromium.
+
+Cost (2 busy cores): the tree of 3 tiny smoke runs and a 2D-pattern run ~20 s, the report ~5 s,
+``smgs render`` ~5 s, the browser ~10 s."""
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 from pathlib import Path
@@ -14,6 +18,14 @@ from PIL import Image
 
 from protocols.results import RunResult, read_result, write_result
 from smgs.io.video import VideoWriter, encoded_size, max_bytes_per_second, read_video, shrink
+
+try:
+    from browser import Browser, find_chromium
+
+    CHROMIUM, CHROMIUM_REASON = find_chromium()
+except ImportError as e:  # pragma: no cover
+    CHROMIUM, CHROMIUM_REASON = None, str(e)
+needs_browser = pytest.mark.skipif(CHROMIUM is None, reason=f"browser test skipped: {CHROMIUM_REASON}")
 
 SMOKE = ["+experiment=smoke", "grid.methods=[3dgs,softmax_gs]", "grid.seeds_of={3dgs:[0,1],softmax_gs:[0]}", "report=false",
          "protocol.steps=5", "dataset.width=96", "dataset.height=72", "dataset.n_views=10", "eval.consistency=true",
@@ -106,10 +118,12 @@ def test_a_failure_to_write_stops_the_video_not_the_scoring(tmp_path, monkeypatc
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory) -> Path:
     from protocols.run import run_experiment
+    from reports.build import build_report
 
     root = tmp_path_factory.mktemp("video") / "runs"
     assert [s["status"] for s in run_experiment(SMOKE + [f"out_dir={root}"])] == ["ok"] * 3
     assert [s["status"] for s in run_experiment(PATTERN + [f"out_dir={root}"])] == ["ok"]
+    build_report(root, stability="skipped")
     return root
 
 
@@ -131,7 +145,9 @@ def test_a_run_encodes_the_frames_its_consistency_metric_rendered(tree):
     # the poster is frame 0 exactly as the metric quantised it (PNG, lossless); the video's is within the codec's loss
     poster = np.asarray(Image.open(run / v["poster"]).convert("RGB"))
     first = read_video(run / v["frames_file"])[0][0]
-    assert poster.shape == (72, 96, 3) and psnr(shrink(first, 96, 72), poster) >= MIN_PSNR
+    got = psnr(shrink(first, 96, 72), poster)
+    print(f"run video: first frame {got:.1f} dB against the metric's frame, {v['bytes_per_second'] / 2e3:.1f} kB/s a video")
+    assert poster.shape == (72, 96, 3) and got >= MIN_PSNR
     assert v["bytes"] > 0 and v["seconds"] > 0 and 0 < v["seconds"] < r.diagnostics["run_seconds"]
 
 
@@ -185,3 +201,78 @@ def test_smgs_render_refuses_what_it_cannot_show(tree, tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "x.webm").exists()
+
+
+def test_the_report_says_why_a_run_has_no_video(tree):
+    html = (tree / "report" / "report.html").read_text()
+    assert "patterns/circle4: 1 run without a video (patterns/circle4/3dgs/cap4/seed0): view consistency: off " \
+           "(eval.consistency=false); `smgs render RUN_DIR` renders its video" in html
+    data = json.loads(html.split('id="report-data">', 1)[1].split("</script>", 1)[0])
+    (player,) = data["players"]
+    assert player["scene"] == "procedural/blocks" and player["frames"] == 48
+    assert [[v["key"] for v in g["videos"]] for g in player["groups"]] == [["3dgs", "softmax_gs"], ["3dgs"]]
+    assert "Encoding both videos took" in html and "media-src 'self' file: blob:" in html
+
+
+# ---- in a browser -------------------------------------------------------------------------------
+
+VIDEOS = "[...document.querySelectorAll('#{p} video')]"
+WATCH = """(() => { const vs = VIDEOS; vs.forEach(v => { const t0 = v.currentTime; v.__moved = false;
+  v.addEventListener('timeupdate', () => { if (Math.abs(v.currentTime - t0) > 0.05) v.__moved = true; }); });
+  return vs.length; })()"""
+
+
+def at_frame(p: str, k: int, fps: int) -> str:
+    """Every video of the player shows frame k, seeked and ready, and the timeline says k."""
+    t = (k + 0.5) / fps
+    return (f"{VIDEOS.format(p=p)}.every(v => Math.abs(v.currentTime - {t}) < 1e-3 && !v.seeking && v.readyState >= 2)"
+            f" && document.querySelector('#{p} input.scrub').value === '{k}'")
+
+
+def check_player(b, p: str, n: int, fps: int, group: int) -> int:
+    """Load, play, advance, pause, scrub and strip-seek every video of one configuration of a player."""
+    b.eval(f"(() => {{ const s = document.querySelector('#{p} select'); s.value = '{group}'; "
+           "s.dispatchEvent(new Event('change')); document.getElementById('" + p + "').scrollIntoView(); })()")
+    vids = VIDEOS.format(p=p)
+    b.wait_for(f"{vids}.length > 0 && {vids}.every(v => v.readyState >= 2)", timeout=90, what="every video loaded")
+    count = b.eval(WATCH.replace("VIDEOS", vids))
+    b.click(f"#{p} button.play")
+    b.wait_for(f"{vids}.every(v => !v.paused && v.__moved)", timeout=90, what="every video playing, its time advancing")
+    b.click(f"#{p} button.play")   # pause
+    b.wait_for(f"{vids}.every(v => v.paused)", timeout=30, what="every video paused")
+    k = n // 3
+    b.eval(f"(() => {{ const r = document.querySelector('#{p} input.scrub'); r.value = '{k}'; "
+           "r.dispatchEvent(new Event('input')); })()")
+    b.wait_for(at_frame(p, k, fps), timeout=60, what=f"every video at frame {k} (the shared timeline)")
+    # a real click on the popping strip, at the worst pair's frame
+    f = int(b.eval(f"document.querySelector('#{p} canvas.popstrip').getAttribute('data-worst')"))
+    assert f != k
+    x, y = b.eval(f"(() => {{ const c = document.querySelector('#{p} canvas.popstrip'); c.scrollIntoView({{block: "
+                  f"'center'}}); const r = c.getBoundingClientRect(); return [r.left + ({f} + 0.5) / {n} * r.width, "
+                  "r.bottom - 4]; })()")
+    for kind in ("mousePressed", "mouseReleased"):
+        b.send("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": y, "button": "left", "clickCount": 1},
+               session=True)
+    b.wait_for(at_frame(p, f, fps), timeout=60, what=f"every video at frame {f} (clicked on the strip)")
+    b.click(f"#{p} input.error-toggle")
+    assert b.eval(f"[...document.querySelectorAll('#{p} video.errors')].every(v => getComputedStyle(v).opacity === '1')")
+    b.click(f"#{p} input.error-toggle")
+    return count
+
+
+@needs_browser
+def test_the_videos_play_in_step_in_a_headless_browser(tree, tmp_path):
+    html = tree / "report" / "report.html"
+    data = json.loads(html.read_text().split('id="report-data">', 1)[1].split("</script>", 1)[0])
+    with Browser(CHROMIUM, timeout=120) as b:
+        b.open(html)
+        b.wait_for("document.documentElement.getAttribute('data-report-ready') === '1'", what="the page's script")
+        checked = 0
+        for player in data["players"]:
+            for g, group in enumerate(player["groups"]):
+                checked += check_player(b, player["id"], player["frames"], player["fps"], g)
+                assert checked and b.eval(f"document.querySelectorAll('#{player['id']} video').length") == \
+                    2 * len(group["videos"])
+        assert checked == 6   # 3dgs and softmax_gs at seed 0, 3dgs at seed 1: frames and warped error each
+        b.screenshot(tmp_path / "player.png", "#player-0")
+        assert b.problems() == []
