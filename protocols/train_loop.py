@@ -191,7 +191,8 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
                                                   run.grad_threshold, log)
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
-            result.consistency = consistency(method, scene, run_dir, ev, device, asked_renderer(cfg), log)
+            result.consistency = consistency(method, scene, run_dir, ev, device, asked_renderer(cfg), log,
+                                             f"{cfg['scene']}/{cfg['method']['name']}")
     result.status = "ok"
     # this process's wall time on the run (since its resume, for a resumed one): what a video's cost is a share of
     result.diagnostics["run_seconds"] = time.perf_counter() - started
@@ -345,12 +346,13 @@ def _no_popping_ratio(method, ev: EvalConfig, device: torch.device, renderer: Re
 
 
 def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.device, renderer: Renderer,
-                log: logging.Logger) -> dict:
+                log: logging.Logger, name: str) -> dict:
     """Table 4 for this run (paper supp. Sec. 7): a video of 128 frames between consecutive test
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
     pixels, and the popping ratio where the leading-splat maps are made (``eval.popping_ratio``).
     Scored on this method's own mask; the trajectory is saved beside the results, and its frames,
-    as scored, are encoded as the run's videos (``protocols.run_video``)."""
+    as scored, are encoded as the run's videos (``protocols.run_video``). ``name``: the cell's, for
+    its progress line."""
     from smgs.metrics.consistency.score import TABLE_STEP, consistency_row
     from smgs.data.trajectory import interpolate_trajectory
 
@@ -372,13 +374,17 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.devi
         return out.rgb, out.depth, out.leaders
 
     tap, no_video = start_video(run_dir, traj, TABLE_STEP, ev)   # the frames scored are also encoded
+    bar = progress_bar(len(traj) - 1, f"{name} consistency", unit="frame", position=1, leave=False)
     try:
         row = consistency_row(render, traj, scene=scene.name, method=method.name, table_step=TABLE_STEP,
-                              test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow, tap=tap)
+                              test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow, tap=tap,
+                              progress=lambda done, total: bar.update(1))
     except BaseException:
         if tap is not None:
             tap.abort()
         raise
+    finally:
+        bar.close()
     out = row.to_json()
     out["video"] = end_video(tap, no_video, log)
     if no_pop:

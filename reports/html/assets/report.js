@@ -234,7 +234,7 @@
         v.currentTime = time(state.frame);
       });
     }
-    function deactivate() {  // out of view: the decoders are released (a page may hold only so many)
+    function deactivate() {  // out of view: its decoders and buffers are released
       stop();
       state.videos.forEach(function (v) { v.pause(); v.removeAttribute("src"); v.load(); });
     }
