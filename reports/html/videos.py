@@ -36,6 +36,8 @@ def why_no_video(run: Run) -> str | None:
         return f"the run was made before runs saved their videos; {RENDER_HINT}"
     if "missing" in v:
         return f"no video: {one_line(str(v['missing']), 300)}"
+    if not all(isinstance(v.get(k), int) and v[k] > 0 for k in ("frames", "fps")):
+        return "its video record names no frame count or frame rate"
     for key in FILES:
         if not isinstance(v.get(key), str) or not (run.path.parent / v[key]).is_file():
             return f"its video file is not there ({v.get(key)!r} in the run directory)"
@@ -66,7 +68,8 @@ def _video(run: Run, runs_dir: Path, out: Path) -> dict:
             "poster": rel_url(folder / v["poster"], out), "error_poster": rel_url(folder / v["error_poster"], out),
             "width": v.get("source_width"), "height": v.get("source_height"), "mse": mse, "worst": worst,
             "seconds": v.get("seconds"), "bytes": v.get("bytes"), "bytes_per_second": v.get("bytes_per_second"),
-            "share": v["seconds"] / run_s if isinstance(run_s, (int, float)) and run_s > 0 else None}
+            "share": v["seconds"] / run_s if isinstance(v.get("seconds"), (int, float)) and isinstance(run_s, (int, float))
+            and run_s > 0 else None}
 
 
 def players(runs: list[Run], runs_dir: Path, out: Path) -> tuple[list[dict], dict[str, list[tuple[str, str]]]]:
@@ -82,7 +85,7 @@ def players(runs: list[Run], runs_dir: Path, out: Path) -> tuple[list[dict], dic
             missing[scene].append((run_name(run, runs_dir), why))
             continue
         v = run.r.consistency["video"]
-        found[(run.r.dataset, run.r.scene, int(v["frames"]), int(v["fps"]), int(v.get("step", 7)))].append(run)
+        found[(run.r.dataset, run.r.scene, v["frames"], v["fps"], int(v.get("step") or 7))].append(run)
     order = sorted(found, key=lambda k: (dataset_rank(k[0]), scene_rank(k[0], k[1]), k[2]))
     paths_of: dict[str, int] = defaultdict(int)
     for ds, scene, *_ in order:

@@ -29,11 +29,13 @@ CONTAINER = "webm"
 PIX_FMT = "yuv420p"
 FPS = 30
 CRF = 28                   # libvpx's constant-quality level (0-63, lower is better)
-MAX_BITS_PER_PIXEL = 0.2   # the ceiling on the average bitrate, per encoded pixel and frame
+MAX_BITS_PER_PIXEL = 0.3   # the ceiling on the average bitrate, per encoded pixel and frame
 MIN_WIDTH = 256            # narrower frames are enlarged by an integer factor (module docstring)
-SPEED = 5                  # libvpx cpu-used: 5 encodes ~2x faster than its default at the same size here
-DESCRIPTION = (f"VP9 (libvpx) in WebM, {PIX_FMT}, crf {CRF}, at most {MAX_BITS_PER_PIXEL} bit per pixel "
-               f"per frame, {FPS} fps")
+# libvpx's realtime mode at cpu-used 6: 5-8x faster than its "good" mode at cpu-used 5 on a smoke run's
+# frames, for ~0.7 dB less at the same size (docs/usage.md#videos)
+DEADLINE, SPEED = "realtime", 6
+DESCRIPTION = (f"VP9 (libvpx, {DEADLINE}, cpu-used {SPEED}) in WebM, {PIX_FMT}, crf {CRF}, at most "
+               f"{MAX_BITS_PER_PIXEL} bit per pixel per frame, {FPS} fps")
 
 
 def video_unavailable() -> str | None:
@@ -110,7 +112,7 @@ class VideoWriter:
         self._stream = self._out.add_stream(CODEC, rate=self.fps)
         self._stream.width, self._stream.height, self._stream.pix_fmt = self.width, self.height, PIX_FMT
         self._stream.bit_rate = int(max_bytes_per_second(width, height, self.fps) * 8)
-        self._stream.options = {"crf": str(CRF), "deadline": "good", "cpu-used": str(SPEED), "row-mt": "1"}
+        self._stream.options = {"crf": str(CRF), "deadline": DEADLINE, "cpu-used": str(SPEED), "row-mt": "1"}
         self.seconds += time.perf_counter() - t0
 
     def picture(self, frame: np.ndarray) -> np.ndarray:
