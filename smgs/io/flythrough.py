@@ -32,16 +32,16 @@ UNSCORED = 0.15   # its brightness where no error is scored
 
 def to_uint8(rgb: np.ndarray) -> np.ndarray:
     """A frame in [0, 1] as 8-bit (exact for a frame of 8-bit values, as the metric quantises them)."""
-    return np.clip(np.rint(np.asarray(rgb, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+    return np.clip(np.rint(np.asarray(rgb, dtype=np.float32) * np.float32(255)), 0, 255).astype(np.uint8)
 
 
 def error_overlay(frame: np.ndarray, err: np.ndarray | None = None, valid: np.ndarray | None = None) -> np.ndarray:
     """The uint8 frame dimmed, with the error map ``err`` [H, W] over it where ``valid``."""
-    f = frame.astype(np.float64) / 255.0
+    f = frame.astype(np.float32) * np.float32(1 / 255)
     if err is None:
-        return to_uint8(f * DIM)
-    shown = np.clip(f * DIM + heat_colors(err, ERROR_MAP_VMAX), 0.0, 1.0)
-    return to_uint8(np.where(valid[..., None], shown, f * UNSCORED))
+        return to_uint8(f * np.float32(DIM))
+    shown = f * np.float32(DIM) + heat_colors(err.astype(np.float32), ERROR_MAP_VMAX)
+    return to_uint8(np.where(valid[..., None], shown, f * np.float32(UNSCORED)))
 
 
 def _png(img: np.ndarray) -> bytes:
@@ -80,7 +80,7 @@ class FlythroughTap:
         if j - i != self.step or self.failed:
             return
         t0 = time.perf_counter()
-        err = np.abs(np.clip(warped, 0.0, 1.0) - target).mean(-1)
+        err = np.abs(np.clip(warped, 0.0, 1.0, dtype=np.float32) - target).mean(-1, dtype=np.float32)
         self.maps[j] = (err, np.asarray(valid, dtype=bool))
         self._flush()
         self.seconds += time.perf_counter() - t0
