@@ -145,6 +145,15 @@ class GaussianSplatting:
                     "versions": {"smgs": smgs.__version__, "torch": torch.__version__}}
         atomic_write_bytes(path / MANIFEST, json.dumps(manifest, indent=1).encode())
 
+    def _as_compared(self, config: dict[str, Any]) -> dict[str, Any]:
+        """A TrainConfig dict as a checkpoint's is compared with this run's: the renderer's variants
+        left out where they ask for the default or where this device's renderer has no such axis
+        (``smgs.identity.unused_variants``: a CUDA kernel set renders nothing differently on the CPU)."""
+        from smgs.identity import unused_variants
+
+        unused = unused_variants({"device": str(self.device), "backend": config.get("backend")})
+        return {k: v for k, v in without_default_variants(config).items() if k not in unused}
+
     def load(self, path: str | Path) -> None:
         """Restore ``path/checkpoint.pt``. Refused: a file whose pickle would run code (only
         tensors and plain containers are read) and a checkpoint of another config (it would carry
@@ -157,8 +166,8 @@ class GaussianSplatting:
         saved = state.get("trainer", {}).get("config")
         if isinstance(saved, dict):   # written before a key's rename: read under today's names
             saved = current_train_keys(saved)
-        diff = config_difference(without_default_variants(saved) if isinstance(saved, dict) else saved,
-                                 without_default_variants(to_dict(self.config)))
+        diff = config_difference(self._as_compared(saved) if isinstance(saved, dict) else saved,
+                                 self._as_compared(to_dict(self.config)))
         if diff:
             raise ValueError(f"checkpoint {file} was trained under another config ({diff}); it cannot "
                              "be resumed under this one (delete it, or rerun with --force)")

@@ -17,40 +17,37 @@ from typing import Any, Iterator
 from smgs.env import versions
 from protocols.cell_lock import cell_lock
 from protocols.cell_rerun import CONFIG_FILE, remove_leftovers, rerun_dir, swap_in
+from protocols.cell_scene import cell_inputs
+from protocols.grid import PRETRAINED
 from protocols.live_cells import live_cell
-from protocols.results import (RESULTS_FILE, VOLATILE, NewerResults, RunResult, atomic_write_text, config_hash,
-                               read_result, write_result)
+from protocols.results import RESULTS_FILE, NewerResults, RunResult, atomic_write_text, read_result, write_result
 from protocols.run_settings import CellSettings, asked_renderer, cell_settings
 from protocols.sections import BudgetConfig
-from smgs.train.config import earlier_train_keys
+from smgs.identity import CellKey, cell_key
 
 LOG = "log.txt"
 
 
-def renderer_is_default(section: Any) -> bool:
-    """Whether a config's ``renderer`` section asks for every variant's default (or is absent)."""
-    from smgs.raster.backends import is_default
-
-    return not section or (isinstance(section, dict) and all(is_default(k, v) for k, v in section.items()))
-
-
-def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
-    """The identity of a cell's result: its config without the volatile keys, and the method's
-    complete settings where it gives them (``baselines.method.ResolvedSettings``), so that a
-    changed default retrains instead of reusing a result computed under the old one. ``settings``:
-    the cell's ``CellSettings`` where the caller has them (made here otherwise)."""
-    ident = {k: v for k, v in cfg.items() if k not in VOLATILE}
-    if renderer_is_default(cfg.get("renderer")):   # as results were hashed before variants were settings
-        ident.pop("renderer", None)
+def result_key(cfg: dict, settings: CellSettings | None = None, inputs: dict | None = None) -> CellKey:
+    """The identity of a cell's result (``smgs.identity.cell_key``): its config that changes numbers,
+    its budget as identified, the method's complete settings where it gives them
+    (``baselines.method.ResolvedSettings``, so that a changed default retrains instead of reusing a
+    result computed under the old one), and its inputs' fingerprint ``inputs``
+    (``protocols.cell_scene.cell_inputs``). ``settings``: the cell's ``CellSettings`` where the caller
+    has them (made here otherwise)."""
+    budget = None
     if isinstance(cfg.get("budget"), dict):
         try:
-            ident["budget"] = BudgetConfig.of(cfg).identity()
+            budget = BudgetConfig.of(cfg).identity()
         except (TypeError, ValueError):   # refused before any cell runs (protocols.validate)
             pass
     resolved = (settings if settings is not None else cell_settings(cfg)).resolved
-    if resolved is not None:   # a renamed setting keeps the name results were hashed with
-        ident["resolved_settings"] = earlier_train_keys(resolved)
-    return config_hash(ident)
+    return cell_key(cfg, budget, resolved, inputs)
+
+
+def result_hash(cfg: dict, settings: CellSettings | None = None) -> str:
+    """The hash of a cell's result (``result_key``), the one its results.json records."""
+    return result_key(cfg, settings).hash
 
 
 @contextlib.contextmanager
@@ -100,10 +97,11 @@ def run_cell(payload: dict) -> dict:
     except DeviceError as e:   # before anything is written: no half-made run directory
         return {"key": payload["key"], "status": "failed", "error": f"{type(e).__name__}: {e}"}
     settings = payload.get("settings") or cell_settings(cfg)   # made once: the hash and the method read it
-    h = result_hash(cfg, settings)
-    base = RunResult(**_identity(cfg), config=cfg, config_hash=h)
+    inputs = cell_inputs(cfg)
+    ident = result_key(cfg, settings, inputs)
+    base = RunResult(**_identity(cfg), config=cfg, config_hash=ident.hash, inputs=inputs or {})
     try:
-        if _finished(run_dir / RESULTS_FILE, h, bool(cfg.get("force", False))):
+        if _finished(run_dir / RESULTS_FILE, ident, bool(cfg.get("force", False))):
             return {"key": payload["key"], "status": "ok", "skipped": True}
         run_dir.mkdir(parents=True, exist_ok=True)
         with cell_lock(run_dir, str(cfg.get("out_dir", "?")), str(cfg.get("on_busy", "skip"))) as holder:
@@ -111,34 +109,38 @@ def run_cell(payload: dict) -> dict:
                 return {"key": payload["key"], "status": "skipped", "busy": True,
                         "error": f"held by {holder.describe()}, which is writing this cell; left to it "
                                  "(rerun later to pick up its result, or on_busy=wait to wait for it)"}
-            return _run_locked(payload["key"], cfg, settings, run_dir, h, base)
+            return _run_locked(payload["key"], cfg, settings, run_dir, ident, base)
     except LeftAlone as e:   # nothing is written: the folder is not ours to change
         return {"key": payload["key"], "status": "failed", "error": str(e)}
     except Exception as e:  # the folder or its lock is the problem: recorded where it can be
         return _failed(payload["key"], run_dir, base, e, None)
 
 
-def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: str, base: RunResult) -> dict:
-    """The cell's run, with its folder's lock held (``protocols.cell_lock``). A finished result of
-    another config (or under ``force``) is kept whole until this run's own is complete: the run
-    then works in the folder beside it (``protocols.cell_rerun``) and is swapped in at the end."""
+def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, ident: CellKey, base: RunResult) -> dict:
+    """The cell's run, with its folder's lock held (``protocols.cell_lock``). A finished result that
+    is not this cell's (another config, other inputs: ``ident.mismatch``), or any under ``force``,
+    is kept whole until this run's own is complete: the run then works in the folder beside it
+    (``protocols.cell_rerun``) and is swapped in at the end; the summary's ``rerun`` says why."""
     force = bool(cfg.get("force", False))
-    if _finished(run_dir / RESULTS_FILE, h, force):
+    if _finished(run_dir / RESULTS_FILE, ident, force):
         return {"key": key, "status": "ok", "skipped": True}   # finished by the lock's last holder
     kept = _finished_result(run_dir / RESULTS_FILE)
     if kept is not None and not force:
+        _check_same_kind(kept, cfg, run_dir)
         _check_same_model(kept, cfg, run_dir)
     work = run_dir if kept is None else rerun_dir(run_dir)
     if kept is not None:
         remove_leftovers(run_dir)
-        if not force and _finished(work / RESULTS_FILE, h, False):   # stopped before its swap: finish it
+        if not force and _finished(work / RESULTS_FILE, ident, False):   # stopped before its swap: finish it
             swap_in(work, run_dir)
             return {"key": key, "status": "ok", "psnr": read_result(run_dir / RESULTS_FILE).metrics.get("psnr")}
+    why = None if kept is None else ("--force" if force else ident.mismatch(kept.config_hash, kept.inputs))
     with _logger(work) as log:
         try:
             if kept is not None:
-                log.info("%s holds the finished result of config %s; it stays there until this run (config %s) "
-                         "is complete, which works in %s", run_dir, kept.config_hash, h, work)
+                log.info("%s holds the finished result of config %s, rerun because %s; it stays there until this "
+                         "run (config %s) is complete, which works in %s", run_dir, kept.config_hash, why, ident.hash,
+                         work)
             if force:
                 from protocols.train_loop import discard_checkpoints
 
@@ -146,9 +148,9 @@ def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: s
             atomic_write_text(work / CONFIG_FILE, _yaml(cfg))
             from protocols.train_loop import train_and_evaluate
             with live_cell(run_dir):
-                result = train_and_evaluate(cfg, settings, work, base, log)
-            if result.config_hash != h:  # a result is only ever recorded under its own config
-                raise RuntimeError(f"internal error: result of config {result.config_hash} under {h}")
+                result = train_and_evaluate(cfg, settings, work, base, log, ident)
+            if result.config_hash != ident.hash:  # a result is only ever recorded under its own config
+                raise RuntimeError(f"internal error: result of config {result.config_hash} under {ident.hash}")
         except KeyboardInterrupt:
             log.info("interrupted; rerun to resume from the last checkpoint"
                      + (f" (the finished result in {run_dir} is untouched)" if kept is not None else ""))
@@ -163,7 +165,7 @@ def _run_locked(key: str, cfg: dict, settings: CellSettings, run_dir: Path, h: s
         write_result(work, result)
     if work != run_dir:
         swap_in(work, run_dir)
-    return {"key": key, "status": "ok", "psnr": result.metrics.get("psnr")}
+    return {"key": key, "status": "ok", "psnr": result.metrics.get("psnr"), **({"rerun": why} if why else {})}
 
 
 def _relocated(result: RunResult, work: Path, run_dir: Path) -> RunResult:
@@ -189,8 +191,9 @@ def _device_label(device: str) -> str:
         return device
 
 
-def _finished(res_path: Path, h: str, force: bool) -> bool:
-    """A finished result of this very config is there (and ``force`` is off)."""
+def _finished(res_path: Path, ident: CellKey, force: bool) -> bool:
+    """A finished result of this very cell is there (its config and inputs: ``ident``), and
+    ``force`` is off."""
     if res_path.parent.exists() and not res_path.parent.is_dir():
         raise NotADirectoryError(f"{res_path.parent} is a file where the run's folder should be; move it away")
     if res_path.is_dir():
@@ -198,7 +201,7 @@ def _finished(res_path: Path, h: str, force: bool) -> bool:
     if force or not res_path.exists():
         return False
     old = _finished_result(res_path)
-    return old is not None and old.config_hash == h
+    return old is not None and ident.mismatch(old.config_hash, old.inputs) is None
 
 
 def _finished_result(res_path: Path) -> RunResult | None:
@@ -211,6 +214,26 @@ def _finished_result(res_path: Path) -> RunResult | None:
     except (OSError, ValueError):
         return None
     return old if old.status == "ok" else None
+
+
+def _check_same_kind(kept: RunResult, cfg: dict, run_dir: Path) -> None:
+    """A cell holds one kind of result: a trained run is never replaced by the evaluation of a PLY
+    (``protocols.evaluate_ply``), nor an evaluation by a trained run, without ``force``;
+    ``LeftAlone`` names both and the fix."""
+    evaluation, ply = bool(kept.source), (cfg.get("ply") or {}).get("path")
+    if evaluation == bool(ply):
+        return
+    if ply:
+        raise LeftAlone(f"{run_dir} holds a trained run ({kept.method}, {kept.steps} steps, config {kept.config_hash}); "
+                        f"the evaluation of {ply} would replace it (its results.json, checkpoint and config.yaml); "
+                        "nothing was changed. A cell holds one kind of result: evaluate the file into a cell of its "
+                        f"own, budget.name={PRETRAINED} (the default) or budget.name={PRETRAINED}-NAME, or add --force "
+                        "to replace the trained run with the evaluation")
+    raise LeftAlone(f"{run_dir} holds the evaluation of {kept.source.get('ply')} (sha256 "
+                    f"{str(kept.source.get('sha256'))[:12]}…, not trained here); training {cfg['method']['name']} "
+                    "here would replace it; nothing was changed. A cell holds one kind of result: add --force to "
+                    "replace the evaluation with the trained run (and evaluate the file again with "
+                    f"budget.name={PRETRAINED}-NAME to keep its row)")
 
 
 def _check_same_model(kept: RunResult, cfg: dict, run_dir: Path) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from protocols.sections import EvalConfig, ProtocolConfig
 from smgs.data.formats import (HARNESS_KEYS, SceneFormat, SceneRequest, check_scene_with, make_scene,
-                               missing_scene)
+                               missing_scene, scene_inputs)
 from smgs.data.scene import DatasetNotFoundError, Scene
 
 DatasetMissing = DatasetNotFoundError
@@ -37,7 +37,30 @@ def load_scene_for(cfg: dict) -> Scene:
     """The scene of a cell (dataset section + the cell's scene name + protocol), with the video
     trajectory the consistency metrics follow when they are on."""
     fmt, request = scene_format(cfg)
-    return make_scene(fmt, request, TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None)
+    return make_scene(fmt, request, TRAJECTORY_BETWEEN if EvalConfig.of(cfg).consistency else None,
+                      where=scene_origin(cfg, fmt))
+
+
+def scene_origin(cfg: dict, fmt: SceneFormat) -> str:
+    """The cell's scene as the config names it, for an error: ``dataset.path=...`` (or the dataset
+    and scene), the format's kind and, for a plug-in's, its distribution."""
+    from smgs.data.registry import plugin_source
+
+    kind = str(cfg["dataset"]["kind"])
+    source = plugin_source(kind)
+    return f"{_scene_key(cfg, fmt)} (scene format {kind!r}{', ' + source if source else ''})"
+
+
+def cell_inputs(cfg: dict) -> dict | None:
+    """The fingerprint of the files the cell's scene is read from (``smgs.data.formats.scene_inputs``),
+    compared with a finished result's to skip it and recorded with the new one. None where they
+    cannot be listed now (the scene is missing or broken: its load says why, or a finished result
+    stays as it is)."""
+    try:
+        fmt, request = scene_format(cfg)
+        return scene_inputs(fmt, request)
+    except Exception:   # a plug-in's inputs() may raise anything; the cell's own load names the problem
+        return None
 
 
 def scene_problem(cfg: dict) -> str | None:

@@ -353,6 +353,8 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
         if s["status"] != "ok":
             where = f" (traceback in {s['log']})" if s.get("log") else ""
             print(f"  {s['key']}: {s['status']}: {s.get('error')}{where}", flush=True)
+        elif s.get("rerun"):   # a finished cell run again: why (another config, changed inputs, --force)
+            print(f"  {s['key']}: rerun: {s['rerun']}", flush=True)
     print("runs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())), flush=True)
     if cfg.report:
         from protocols.report_step import build_report

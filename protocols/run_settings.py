@@ -40,7 +40,7 @@ def run_settings(cfg: dict) -> RunSettings:
 @dataclass(frozen=True)
 class CellSettings:
     """What a cell's method is created with, worked out once per cell (the runner makes it when it
-    plans the cell; ``protocols.validate``, the hash of its result, ``protocols.cell.result_hash``, and
+    plans the cell; ``protocols.validate``, the identity of its result, ``protocols.cell.result_key``, and
     the method, ``protocols.ply.make_method``, all read it). ``method``: the method's settings resolved
     (``baselines.registry.resolve``: its config, the RunSettings and the complete settings it trains
     with, a TrainConfig for the built-ins), None where they could not be made. ``run``: the

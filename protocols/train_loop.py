@@ -28,6 +28,7 @@ from protocols.run_settings import CellSettings, asked_renderer
 from protocols.run_video import end_video, start_video, video_cameras
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
+from smgs.identity import CellKey
 from smgs.atomic import atomic_write_bytes, atomic_write_text
 from smgs.metrics.image import evaluate_images, psnr, quantize_8bit
 from smgs.metrics.result import Missing
@@ -85,9 +86,10 @@ def discard_checkpoints(run_dir: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _load_checkpoint(run_dir: Path, method, config_hash: str, log: logging.Logger) -> dict | None:
-    """The progress of this config's checkpoint, restored into ``method``; None (and the checkpoint
-    discarded) when there is none or it belongs to another config."""
+def _load_checkpoint(run_dir: Path, method, key: CellKey | str, log: logging.Logger) -> dict | None:
+    """The progress of this cell's checkpoint (``key``: its identity, or its config hash alone),
+    restored into ``method``; None (and the checkpoint discarded) when there is none or it belongs
+    to another config or was trained on other inputs."""
     ptr = run_dir / POINTER
     if not ptr.exists():
         return None
@@ -97,9 +99,10 @@ def _load_checkpoint(run_dir: Path, method, config_hash: str, log: logging.Logge
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"checkpoint {ptr} is unreadable ({type(e).__name__}: {e}); rerun with --force "
                          "to discard it") from None
-    if progress.get("config_hash") != config_hash:
-        log.info("checkpoint %s is of config %s, not this cell's %s: discarded, training from step 0",
-                 d, progress.get("config_hash", "<unrecorded>"), config_hash)
+    key = CellKey(key) if isinstance(key, str) else key
+    why = key.mismatch(progress.get("config_hash"), progress.get("inputs"))
+    if why:
+        log.info("checkpoint %s is not this cell's (%s): discarded, training from step 0", d, why)
         discard_checkpoints(run_dir)
         return None
     method.load(d)
@@ -141,11 +144,14 @@ def _quantiles(t: torch.Tensor) -> dict[str, float]:
 
 
 def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result: RunResult,
-                       log: logging.Logger) -> RunResult:
+                       log: logging.Logger, key: CellKey | None = None) -> RunResult:
     """One run: train (with checkpoints and intermediate evaluations), then the final metrics,
     speed, diagnostics and view consistency. ``cfg["device"]`` is the resolved device
-    (``protocols.cell.with_device``); ``settings`` the cell's resolved settings (``cell_settings``)."""
+    (``protocols.cell.with_device``); ``settings`` the cell's resolved settings (``cell_settings``);
+    ``key`` the cell's identity, which its checkpoints record and match (default: the result's
+    config hash and inputs)."""
     started = time.perf_counter()
+    key = key or CellKey(result.config_hash, inputs=result.inputs or None)
     device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
@@ -168,8 +174,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     neighbours = NeighbourLog()   # the cells (of any sweep) that shared this machine while it trained
     watch = CollapseWatch.start(method.num_gaussians())
     with track_peak_memory(device) as peak:
-        result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log,
-                             neighbours, watch)
+        result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, key, log, neighbours, watch)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
@@ -198,7 +203,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     result.diagnostics["run_seconds"] = time.perf_counter() - started
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in result.curve], "config_hash": result.config_hash,
+                                       "curve": [c.__dict__ for c in result.curve], **key.checkpoint_fields(),
                                        "collapse_watch": watch.to_json()})
     after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
@@ -228,7 +233,7 @@ def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
 
 
 def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
-          cfg: dict, run_dir: Path, config_hash: str, log: logging.Logger,
+          cfg: dict, run_dir: Path, key: CellKey, log: logging.Logger,
           neighbours: NeighbourLog | None, watch: CollapseWatch) -> list[CurvePoint]:
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps, moved off opacity resets (``eval_steps``; the error-
@@ -236,7 +241,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
     the train clock. ``neighbours``
     counts the cells running on this machine every 10 steps; ``watch`` follows the Gaussian count
     (``protocols.collapse``; its history is kept in the checkpoints)."""
-    progress = _load_checkpoint(run_dir, method, config_hash, log) or \
+    progress = _load_checkpoint(run_dir, method, key, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     if progress.get("collapse_watch"):
         watch.restore(progress["collapse_watch"])
@@ -264,7 +269,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             with clock.exclude("checkpoint"):
                 _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
                                                    "curve": [c.__dict__ for c in curve],
-                                                   "config_hash": config_hash, "collapse_watch": watch.to_json()})
+                                                   **key.checkpoint_fields(), "collapse_watch": watch.to_json()})
         bar.update(1)
         if done % 10 == 0 or done == steps:
             if neighbours is not None:

@@ -29,6 +29,7 @@ from typing import Iterator
 
 from protocols.results import RunResult
 from smgs.atomic import atomic_write_bytes, atomic_write_text, replace_dir, umask
+from reports.aggregate import Cells
 from reports.diagnostics import diagnostics_section
 from reports.environment import environment_markdown, this_machine
 from reports.html import html_report
@@ -100,7 +101,7 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
     loaded = load_runs(runs_dir, *also)
     runs = [x.result for x in loaded.runs]
     paper = load_paper()
-    ctx = Context.of(runs, paper)
+    ctx = Context.of(runs, paper, Cells.loaded(loaded))   # every table's numbers: from this results table
 
     sections = [_guard(f"Table {i}", lambda f=f: f(runs, ctx))
                 for i, f in enumerate((table1, table2, table3, table4, table5), start=1)]
@@ -108,7 +109,7 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
     if wants_popping(runs):    # beside Table 4: rendering its scenes takes seconds, so only there
         pop, section_plots["popping"] = _guard("Popping", lambda: popping_section(runs), with_plots=True)
         sections.insert(4, pop)
-    plots, plot_error = _guard_plots(lambda: _tradeoff_plots(runs))
+    plots, plot_error = _guard_plots(lambda: _tradeoff_plots(runs, ctx.cells))
     diag, diag_plots = _guard("Softmax-GS diagnostics", lambda: diagnostics_section(runs, ctx), with_plots=True)
 
     computed_here = stability is None
@@ -139,9 +140,9 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
     return out / REPORT
 
 
-def _tradeoff_plots(runs: list[RunResult]) -> list[Plot]:
+def _tradeoff_plots(runs: list[RunResult], cells: Cells) -> list[Plot]:
     plots = time_curves(runs)
-    fps_pts, gs_pts = tradeoff_points(runs)
+    fps_pts, gs_pts = tradeoff_points(runs, cells)
     plots += pareto_plots(fps_pts, "psnr_vs_fps.png", "render FPS", True, True,
                           "PSNR against render FPS, one point per method × budget (dataset means as in Table 2; "
                           "one panel per dataset or pattern); the dashed line and rings mark the Pareto front "

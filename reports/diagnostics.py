@@ -26,8 +26,8 @@ from protocols.results import RunResult
 from reports.paper import (KMAX_COVERAGE, KMAX_COVERAGE_RANGE, dataset_label, dataset_rank,
                            method_label, row_label, scene_rank)
 from reports.plots import Plot, _png, color
-from reports.runs import Value, config_difference, is_pattern
-from reports.stats import mean_sd
+from reports.aggregate import groups, seed_means
+from reports.runs import PATTERN_DATASETS, Value, is_pattern
 from reports.table_model import Column, Row, Section, Table, percent, sig
 from reports.tables import Context, row_order
 
@@ -62,22 +62,21 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
         vals = sorted(_coverage(r) for r in pats)
         notes.append(f"2D pattern fits ({len(pats)} runs): coverage from {percent(vals[0])} to {percent(vals[-1])} "
                      f"(median {percent(statistics.median(vals))}); a capped fit has few splats per ray.")
-    real = [r for r in ok if not is_pattern(r)]
-    if not real:
+    f = ctx.cells.frame
+    keys = ["dataset", "scene", "method", "budget", "preset"]
+    rows_ = ctx.cells.rows(~f["dataset"].isin(PATTERN_DATASETS)
+                           & ctx.cells.quantity("frac_within_kmax")["reason"].isna())
+    if not len(rows_):
         return None, notes
-    cells: dict[tuple, list[RunResult]] = defaultdict(list)
-    for r in real:
-        cells[(r.dataset, r.scene, r.method, r.budget, r.preset)].append(r)
+    means = seed_means(ctx.cells, keys, ["frac_within_kmax"], rows_)   # seeds of different configs: not pooled
     col = Column("frac_within_kmax", "Pixels within k_max", percent, None, "diff",
                  delta_fmt=lambda d: f"{100 * d:+.1f} pt")
     rows = []
+    cells = groups(ctx.cells, keys, rows_)
     for key in sorted(cells, key=lambda k: (dataset_rank(k[0]), scene_rank(k[0], k[1]), row_order(k[2:]))):
         ds, scene, m, b, p = key
         rs = sorted(cells[key], key=lambda r: r.seed)
-        per_seed = tuple((r.seed, _coverage(r)) for r in rs)
-        mean, sd = mean_sd([x for _, x in per_seed])
-        split = config_difference(rs)   # seeds of different configs are not pooled
-        v = Value.absent(split) if split else Value(mean, sd, len(per_seed), seeds=per_seed)
+        v = means.get(key, "frac_within_kmax")
         label, lnotes = ctx.label((m, b, p), rs)
         if ds == "mipnerf360" and scene in KMAX_COVERAGE:
             kind = "indoor" if KMAX_COVERAGE[scene] > 0.8 else "outdoor"
@@ -87,8 +86,8 @@ def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, l
             paper = Value.absent("the paper gives ≈85% (Mip-NeRF360 indoor) and ≈70% (outdoor) only")
             where = ""
         lo, hi = KMAX_COVERAGE_RANGE
-        verdict = "below 70–85%" if mean < lo else ("above 70–85%" if mean > hi else "within 70–85%")
-        verdict = verdict if v.ok else "—"
+        verdict = "—" if not v.ok else \
+            "below 70–85%" if v.mean < lo else ("above 70–85%" if v.mean > hi else "within 70–85%")
         rows.append(Row([dataset_label(ds), scene, label], {col.key: v}, {col.key: paper}, label_notes=lnotes,
                         info={"k_max": ", ".join(sorted({k_max(r) for r in rs})), "vs paper range": verdict},
                         csv={"dataset": ds, "scene": scene, "method": m, "budget": b, "preset": p,

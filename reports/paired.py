@@ -2,8 +2,8 @@
 
 For each pair (Softmax-GS − 3D GS at the same budget and preset; in Table 4 each method − 3D GS), per
 scene (dataset, or pattern and cap) and metric: the mean over seeds of the per-seed difference (seed s
-of one method with seed s of the other), its Student t interval (reports.stats), ✱ where the interval
-excludes 0, and the paper's difference beside it. Why t, and what ✱ does and does not say:
+of one method with seed s of the other: ``reports.aggregate.paired``), its Student t interval, ✱ where
+the interval excludes 0, and the paper's difference beside it. Why t, and what ✱ does and does not say:
 docs/reports.md ("Seeds, spread and paired differences").
 """
 
@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from typing import Callable, Iterable
 
 from reports.paper import DATASET_ORDER, GROUP_LABELS, PaperTables, dataset_label, method_label, row_label
+from reports.aggregate import paired_value
 from reports.runs import Value
-from reports.stats import CONFIDENCE, paired, t_quantile
+from reports.stats import CONFIDENCE, t_quantile
 from reports.table_model import Column, Row, Section, Table
 
 BASELINE = "3dgs"
@@ -31,31 +32,6 @@ def delta_column(c: Column) -> Column:
     """The paired-difference column of a table's metric column: A − B with its interval, the paper's
     A − B beside it (the arrow says which sign favours A)."""
     return Column(c.key, f"Δ{c.label} [{CONFIDENCE:.0%} CI]", signed(c.decimals), compare="paper")
-
-
-def paired_value(a: Value, b: Value, a_name: str, b_name: str) -> Value:
-    """A − B over the seeds both ran, with its interval, or why there is none."""
-    for v, name in ((a, a_name), (b, b_name)):
-        if not v.ok:
-            return Value.absent(f"{name}: {v.reason}")
-        if not v.seeds:
-            return Value.absent(f"{name}: no per-seed values")
-    p = paired(a.seeds, b.seeds)
-    if p is None:
-        return Value.absent(f"no seed in common ({a_name}: seeds {_seeds(a)}; {b_name}: seeds {_seeds(b)})")
-    notes = []
-    for only, name in ((p.only_a, a_name), (p.only_b, b_name)):
-        if only:
-            notes.append(f"unpaired, left out: seed{'s' if len(only) > 1 else ''} "
-                         f"{', '.join(map(str, only))} of {name} only")
-    if p.n == 1:
-        notes.append("one seed pair: no interval")
-    ci = (p.low, p.high) if p.low is not None and p.high is not None else None
-    return Value(p.mean, p.sd, p.n, None, tuple(notes), p.diffs, ci)
-
-
-def _seeds(v: Value) -> str:
-    return ", ".join(str(s) for s, _ in v.seeds) or "none"
 
 
 def paper_delta(a: Value, b: Value, context: str | None) -> Value:

@@ -20,8 +20,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from protocols.results import RunResult
+from reports.aggregate import Band, seed_bands  # noqa: F401 - the seeds' band of a curve, re-exported for the page
 from reports.paper import budget_rank, dataset_label, dataset_rank, method_label, method_rank, scene_rank
-from reports.runs import Value, config_difference, is_pattern, pattern_cap
+from reports.runs import Value, is_pattern, pattern_cap
 
 PANELS_PER_FIGURE = 9
 COLORS = {"3dgs": "#1f77b4", "gef_only": "#2ca02c", "softmax_only": "#ff7f0e", "softmax_gs": "#d62728"}
@@ -73,44 +74,6 @@ def _grid(n: int) -> tuple[int, int]:
 
 
 # ---- PSNR against train seconds ----------------------------------------------------------------
-
-@dataclass
-class Band:
-    """The seeds of one method × budget × preset on one panel, at the evaluation steps all of them
-    made: mean train seconds, mean / lowest / highest PSNR."""
-
-    method: str
-    budget: str
-    preset: str
-    seeds: list[int]
-    steps: list[int]
-    seconds: list[float]
-    mean: list[float]
-    low: list[float]
-    high: list[float]
-
-
-def seed_bands(runs: list[RunResult]) -> list[Band]:
-    """One Band per method × budget × preset of ``runs`` (one panel's) with two or more seeds of one
-    config whose curves share at least one evaluation step (seeds of different configs are drawn
-    apart, ``reports.runs.config_difference``)."""
-    groups: dict[tuple[str, str, str], list[RunResult]] = {}
-    for r in runs:
-        groups.setdefault((r.method, _budget(r), r.preset), []).append(r)
-    bands = []
-    for (m, b, p), rs in groups.items():
-        if len(rs) < 2 or config_difference(rs):
-            continue
-        by_step = [{c.step: c for c in r.curve} for r in rs]
-        steps = sorted(set.intersection(*(set(d) for d in by_step)))
-        if not steps:
-            continue
-        ys = [[d[s].psnr for d in by_step] for s in steps]
-        bands.append(Band(m, b, p, sorted(r.seed for r in rs), steps,
-                          [sum(d[s].seconds for d in by_step) / len(rs) for s in steps],
-                          [sum(y) / len(y) for y in ys], [min(y) for y in ys], [max(y) for y in ys]))
-    return bands
-
 
 def time_curves(runs: list[RunResult]) -> list[Plot]:
     panels: dict[str, list[RunResult]] = {}

@@ -17,13 +17,12 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
+from reports.aggregate import TIE, Rank, ranks
 from reports.runs import Value
 
 SUPERSCRIPT = str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")
 DASH = "—"
-TIE = "tie"            # rank of values that share the best place within their seeds' spread
 RESOLVED = "✱"         # after an interval that excludes 0
-Rank = Literal[1, 2, "tie"]
 SEEDS_GUIDE = ("Values are means over seeds; with two or more seeds ± is their standard deviation (n in the note "
                "under each table; a dataset mean's ± is propagated from its scenes'), and best / second need a lead "
                "larger than that spread, a lead inside it is marked (tie). The paired differences under Tables 1, 2, "
@@ -123,50 +122,18 @@ class Table:
 
     # -- ranking ----------------------------------------------------------------------------
     def ranks(self) -> dict[tuple[int, str], Rank]:
-        """(row index, column key) -> 1 (best), 2 (second) or "tie", among competing cells with a value.
-
-        Without a spread (no value of the set has an sd: one seed) values equal as printed share a
-        rank; a set with a single value, or whose values all tie, is not ranked. With a spread, a value
-        ties the best when it is equal as printed or behind by no more than the larger sd of the two:
-        a lone best is rank 1, several are each "tie" (and nobody is second); the runner-up is rank 2
-        only when it leads the next value by more than their spread (or is the last)."""
-        sets: list[tuple[list[tuple[int, str]], Column]] = []
-        if self.rank == "column":
+        """(row index, column key) -> 1 (best), 2 (second) or "tie", among competing cells with a value
+        (``reports.aggregate.ranks``): by column, the rows of one ``rank_group``; by row, the columns of
+        one ``group``."""
+        cands = []
+        for i, r in enumerate(self.rows):
             for c in self.columns:
-                if not c.better:
+                v = r.values.get(c.key)
+                if self.rank == "none" or not c.better or v is None or not v.ok:
                     continue
-                groups: dict[tuple, list[tuple[int, str]]] = {}
-                for i, r in enumerate(self.rows):
-                    groups.setdefault(r.rank_group, []).append((i, c.key))
-                sets += [(cells, c) for cells in groups.values()]
-        elif self.rank == "row":
-            for i, r in enumerate(self.rows):
-                by_group: dict[str, list[Column]] = {}
-                for c in self.columns:
-                    if c.better:
-                        by_group.setdefault(c.group, []).append(c)
-                for cols in by_group.values():
-                    sets.append(([(i, c.key) for c in cols], cols[0]))
-        out: dict[tuple[int, str], Rank] = {}
-        for cells, col in sets:
-            scored = []   # (mean, text as printed, sd, cell)
-            for i, k in cells:
-                v = self.rows[i].values.get(k)
-                if v is not None and v.ok:
-                    scored.append((v.mean, col.fmt(v.mean), v.std, (i, k)))
-            if len(scored) < 2:
-                continue
-            best_first = sorted(scored, key=lambda s: s[0], reverse=(col.better == "higher"))
-            if any(sd is not None for *_, sd, _ in scored):
-                out.update(_spread_ranks(best_first))
-                continue
-            texts = list(dict.fromkeys(t for _, t, _, _ in best_first))  # equal as printed = tie
-            if len(texts) < 2:
-                continue  # all equal: nothing stands out
-            for _, t, _, cell in scored:
-                if texts.index(t) < 2:
-                    out[cell] = texts.index(t) + 1
-        return out
+                competing = (c.key, r.rank_group) if self.rank == "column" else (i, c.group)
+                cands.append((competing, (i, c.key), v.mean, c.fmt(v.mean), v.std, c.better == "higher"))
+        return ranks(cands)
 
     # -- seeds ------------------------------------------------------------------------------
     def seed_count(self) -> int:
@@ -332,23 +299,6 @@ def _value_cell(v: Value, c: Column, rank: Rank | None, notes: "Footnotes", std:
     if not v.ok:
         return Cell(DASH, marks=[notes.mark(v.reason or "no value")])
     return Cell(c.value_text(v, std), rank, [notes.mark(n) for n in v.notes], v.mean)
-
-
-def _spread_ranks(best_first: list[tuple]) -> dict[tuple[int, str], Rank]:
-    """Table.ranks for a set with a spread: ``best_first`` holds (mean, text as printed, sd, cell)."""
-    def ties(a: tuple, b: tuple) -> bool:
-        sds = [x[2] for x in (a, b) if x[2] is not None]
-        return a[1] == b[1] or abs(a[0] - b[0]) <= max(sds, default=0.0)
-
-    top = best_first[0]
-    best = [x for x in best_first if ties(top, x)]
-    if len(best) > 1:
-        return {x[3]: TIE for x in best}
-    out: dict[tuple[int, str], Rank] = {top[3]: 1}
-    rest = best_first[1:]
-    if len(rest) == 1 or not ties(rest[0], rest[1]):
-        out[rest[0][3]] = 2
-    return out
 
 
 def md_text(text: object) -> str:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 from protocols.results import RunResult
 from reports.collapse import LABEL as COLLAPSED
@@ -17,34 +17,32 @@ from reports.ordering import ordering_section
 from reports.paper import (DATASET_SCENES, PATTERNS, GROUP_LABELS, GROUP_ORDER, PaperTables, budget_group,
                            budget_rank, dataset_label, dataset_rank, method_label, method_rank, paper_key,
                            row_label, scene_rank)
-from reports.runs import (Value, aggregate, consistency_getter, field_getter, flow_estimator, is_pattern,
-                          metric, one_line, pattern_cap, preset_description)
+from reports.aggregate import Cells, SeedMeans, groups, scene_means, scene_reasons, seed_means
+from reports.runs import PATTERN_DATASETS, Value, flow_estimator, preset_description
 from reports.paired import table1_paired, table2_paired, table4_paired, table5_paired
-from reports.stats import mean_of_means
 from reports.table_model import Column, Row, Section, Table, count, fixed
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 RowKey = tuple[str, str, str]  # (method, budget, preset)
 REFERENCE_NOTE = ("[reference renderer] = rendered with the PyTorch reference backend (results.json versions), "
                   "100–1000× slower than the compiled ones: its quality is the method's, its times and FPS are "
                   "not")
-
-PSNR = metric("psnr")
-SSIM = metric("ssim")
-LPIPS = metric("lpips")
-NUM_GS = field_getter("num_gaussians", "#GS")
-TRAIN_MIN = field_getter("train_seconds", "train time", 1 / 60)
-FPS = field_getter("render_fps", "render FPS")
+SCENE_KEYS = ["dataset", "scene", "method", "budget", "preset"]   # a row of Tables 3–5
 
 
 @dataclass
 class Context:
-    """What every table builder shares: the paper's numbers and the presets' descriptions."""
+    """What every table builder shares: the paper's numbers, the presets' descriptions and the results
+    table of the runs (every number of a table is computed from it: ``reports.aggregate``)."""
 
     paper: PaperTables
     presets: dict[str, str]  # reduced preset -> footnote text
+    cells: Cells
 
     @staticmethod
-    def of(runs: list[RunResult], paper: PaperTables) -> "Context":
+    def of(runs: list[RunResult], paper: PaperTables, cells: Cells | None = None) -> "Context":
         by: dict[str, list[RunResult]] = defaultdict(list)
         for r in runs:
             by[r.preset].append(r)
@@ -54,7 +52,12 @@ class Context:
                 desc = preset_description(rs)
                 presets[p] = (f"[{p}] = the {p} preset{f' ({desc})' if desc else ''}, a reduced protocol, not "
                               f"the paper's: its Δ to the paper is context, not a reproduction check")
-        return Context(paper, presets)
+        return Context(paper, presets, cells if cells is not None else Cells.of(runs))
+
+    def rows(self, real: bool) -> "pd.Index":
+        """The rows of the real-scene runs, or (``real=False``) of the 2D pattern fits."""
+        f = self.cells.frame
+        return self.cells.rows(~f["dataset"].isin(PATTERN_DATASETS) if real else f["dataset"].isin(PATTERN_DATASETS))
 
     def paper_value(self, x: float | None, where: str) -> Value:
         if self.paper.error:
@@ -134,13 +137,6 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
     return notes
 
 
-def _by(runs: Iterable[RunResult], *fields_) -> dict[tuple, list[RunResult]]:
-    out: dict[tuple, list[RunResult]] = defaultdict(list)
-    for r in runs:
-        out[tuple(getattr(r, f) for f in fields_)].append(r)
-    return out
-
-
 def _csv_id(key: RowKey, **extra) -> dict[str, object]:
     method, budget, preset = key
     return {**extra, "method": method, "budget": budget, "preset": preset, "label": row_label(method, budget)}
@@ -150,7 +146,8 @@ def _csv_id(key: RowKey, **extra) -> dict[str, object]:
 
 def table1(runs: list[RunResult], ctx: Context) -> Section:
     sec = Section("table1_patterns", "Table 1 — 2D pattern fits (PSNR ↑, capped #Gaussians)")
-    pats = [r for r in runs if is_pattern(r)]
+    rows_ = ctx.rows(real=False)
+    pats = ctx.cells.runs_at(rows_)
     if not pats:
         sec.empty_reason = ("no 2D pattern fits (dataset=patterns) below the runs directory; "
                             "`python -m protocols.run +experiment=patterns` makes them.")
@@ -158,19 +155,14 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
     sec.intro.append("Mean ± std over seeds of the test-view PSNR of each fit; one block per pattern, one row "
                      "per Gaussian cap, methods side by side (the paper's table transposed so that its value "
                      "sits beside ours). Best of a row in bold, second in italics (among methods of one preset).")
-    cells: dict[tuple, list[RunResult]] = defaultdict(list)
-    no_cap = []
-    for r in pats:
-        cap = pattern_cap(r)
-        if cap is None:
-            no_cap.append(r)
-            continue
-        cells[(r.scene, cap, r.method, r.preset)].append(r)
+    capped = rows_[ctx.cells.frame.loc[rows_, "cap"].notna().to_numpy(bool)]
+    no_cap = ctx.cells.runs_at(rows_.difference(capped))
+    means = seed_means(ctx.cells, ["scene", "cap", "method", "preset"], ["psnr", "num_gaussians"], capped)
     records = []
-    patterns = sorted({k[0] for k in cells}, key=lambda p: (PATTERNS.index(p) if p in PATTERNS else 99, p))
+    patterns = sorted({k[0] for k in means.keys()}, key=lambda p: (PATTERNS.index(p) if p in PATTERNS else 99, p))
     for pattern in patterns:
-        caps = sorted({k[1] for k in cells if k[0] == pattern})
-        cols_keys = sorted({(k[2], k[3]) for k in cells if k[0] == pattern},
+        caps = sorted({k[1] for k in means.keys() if k[0] == pattern})
+        cols_keys = sorted({(k[2], k[3]) for k in means.keys() if k[0] == pattern},
                            key=lambda mp: (mp[1] != "paper", mp[1], method_rank(mp[0])))
         columns = []
         for m, p in cols_keys:
@@ -180,18 +172,14 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
         for cap in caps:
             row = Row([str(cap)], {}, csv={"pattern": pattern, "cap": cap})
             for m, p in cols_keys:
-                rs = cells.get((pattern, cap, m, p), [])
-                v = aggregate(rs, PSNR)
-                row.values[f"{m}@{p}"] = v
+                row.values[f"{m}@{p}"] = means.get((pattern, cap, m, p), "psnr")
                 row.paper[f"{m}@{p}"] = ctx.paper_value(ctx.paper.t1(pattern, m, cap), "Table 1")
             rows.append(row)
         notes = [ctx.presets[p] for p in sorted({p for _, p in cols_keys}) if p in ctx.presets]
         sec.blocks.append(Table(f"{pattern}", ["#GS cap"], columns, rows, notes=notes, rank="row", seeds=True))
-        for (pt, cap, m, p), rs in sorted(cells.items()):
-            if pt != pattern:
-                continue
-            v = aggregate(rs, PSNR)
-            gs = aggregate(rs, NUM_GS)
+        for pt, cap, m, p in sorted(k for k in means.keys() if k[0] == pattern):
+            v = means.get((pt, cap, m, p), "psnr")
+            gs = means.get((pt, cap, m, p), "num_gaussians")
             pv = ctx.paper.t1(pattern, m, cap)
             records.append({"pattern": pattern, "method": m, "preset": p, "cap": cap, "psnr": v.mean,
                             "psnr_std": v.std, "n_seeds": v.n, "paper_psnr": pv,
@@ -199,8 +187,8 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
                             "num_gaussians": gs.mean, "note": "; ".join(([v.reason] if v.reason else [])
                                                                         + list(v.notes))})
     sec.records = records
-    sec.subsections.append(_table1_ordering(cells, ctx))
-    _add(sec, table1_paired(_table1_rows(cells, ctx), [Column("psnr", "PSNR↑", fixed(2), "higher")]))
+    sec.subsections.append(_table1_ordering(means, ctx))
+    _add(sec, table1_paired(_table1_rows(means, ctx), [Column("psnr", "PSNR↑", fixed(2), "higher")]))
     sec.notes += mix_notes(pats)
     if no_cap:
         sec.notes.append(f"{len(no_cap)} pattern run(s) record no Gaussian cap and are left out: "
@@ -208,11 +196,12 @@ def table1(runs: list[RunResult], ctx: Context) -> Section:
     return sec
 
 
-def _table1_rows(cells: dict[tuple, list[RunResult]], ctx: Context) -> list[Row]:
+def _table1_rows(means: SeedMeans, ctx: Context) -> list[Row]:
     """One row per pattern × cap × method × preset (for the paired differences)."""
-    return [Row([], {"psnr": aggregate(rs, PSNR)}, {"psnr": ctx.paper_value(ctx.paper.t1(pt, m, cap), "Table 1")},
+    return [Row([], {"psnr": means.get((pt, cap, m, p), "psnr")},
+                {"psnr": ctx.paper_value(ctx.paper.t1(pt, m, cap), "Table 1")},
                 csv={"pattern": pt, "cap": cap, "method": m, "budget": f"cap{cap}", "preset": p})
-            for (pt, cap, m, p), rs in sorted(cells.items())]
+            for pt, cap, m, p in sorted(means.keys())]
 
 
 def _add(sec: Section, sub: Section | None) -> None:
@@ -220,15 +209,15 @@ def _add(sec: Section, sub: Section | None) -> None:
         sec.subsections.append(sub)
 
 
-def _table1_ordering(cells: dict[tuple, list[RunResult]], ctx: Context) -> Section:
+def _table1_ordering(means: SeedMeans, ctx: Context) -> Section:
     """The ordering check on the seed means of each (pattern, cap, preset) (``reports.ordering``)."""
-    means: dict[tuple, dict[str, float]] = defaultdict(dict)
-    for (pattern, cap, m, p), rs in cells.items():
-        v = aggregate(rs, PSNR)
+    by_cell: dict[tuple, dict[str, float]] = defaultdict(dict)
+    for pattern, cap, m, p in means.keys():
+        v = means.get((pattern, cap, m, p), "psnr")
         if v.ok:
-            means[(pattern, cap, p)][m] = v.mean
-    paper = {(pt, cap): ctx.paper.t1(pt, "softmax_gs", cap) for pt, cap, _ in means}
-    return ordering_section(dict(sorted(means.items())), paper)
+            by_cell[(pattern, cap, p)][m] = v.mean
+    paper = {(pt, cap): ctx.paper.t1(pt, "softmax_gs", cap) for pt, cap, _ in by_cell}
+    return ordering_section(dict(sorted(by_cell.items())), paper)
 
 
 # ---- Table 2 ----------------------------------------------------------------------------------
@@ -239,7 +228,6 @@ T2_COLUMNS = [
     Column("lpips", "LPIPS↓", fixed(3), "lower", "diff", 3),
     Column("num_gaussians", "#GS↓", count, "lower", "ratio"),
 ]
-T2_GETTERS = {"psnr": PSNR, "ssim": SSIM, "lpips": LPIPS, "num_gaussians": NUM_GS}
 
 
 def expected_scenes(dataset: str, runs: list[RunResult]) -> list[str]:
@@ -262,13 +250,17 @@ class DatasetMeans:
     runs: list[RunResult]
 
 
-def dataset_means(dataset: str, real: list[RunResult], getters: dict) -> DatasetMeans:
-    runs = [r for r in real if r.dataset == dataset]
+def dataset_means(cells: Cells, dataset: str, names: list[str]) -> DatasetMeans:
+    """Per row (method, budget, preset) of ``dataset``'s runs and quantity of ``names``: the mean over the
+    scenes every row of the preset ran (``reports.aggregate.scene_means``), or why there is none."""
+    f = cells.frame
+    rows = cells.rows((f["dataset"] == dataset) & ~f["dataset"].isin(PATTERN_DATASETS))
+    runs = cells.runs_at(rows)
     expected = expected_scenes(dataset, runs)
     extra = sorted({r.scene for r in runs} - set(expected))
-    cell = _by(runs, "method", "budget", "preset", "scene")
     keys = sorted({(r.method, r.budget, r.preset) for r in runs}, key=row_order)
-    psnr = {(k, s): aggregate(cell.get((*k, s), []), PSNR) for k in keys for s in expected}
+    seeds = seed_means(cells, ["method", "budget", "preset", "scene"], dict.fromkeys(["psnr", *names]), rows)
+    psnr = {(k, s): seeds.get((*k, s), "psnr") for k in keys for s in expected}
     common: dict[str, list[str]] = {}
     for preset in sorted({k[2] for k in keys}):
         ran = [{s for s in expected if psnr[(k, s)].ok} for k in keys if k[2] == preset]
@@ -279,55 +271,25 @@ def dataset_means(dataset: str, real: list[RunResult], getters: dict) -> Dataset
     for k in keys:
         scenes = common[k[2]]
         if not any(psnr[(k, s)].ok for s in expected):
-            reasons = {s: psnr[(k, s)].reason for s in expected}
-            why = _scene_reasons(reasons)
-            values[k] = {m: Value.absent(why) for m in getters}
-            continue
-        if not scenes:
+            why = scene_reasons({s: psnr[(k, s)].reason for s in expected})
+        elif not scenes:
             why = (f"no {dataset_label(dataset)} scene was run by every row of this preset, so no comparable "
                    "mean (per-scene values in Table 5)")
-            values[k] = {m: Value.absent(why) for m in getters}
+        else:
+            values[k] = scene_means(seeds, [k], scenes, names)[k]
+            if len(scenes) < len(expected):
+                missing = [s for s in expected if s not in scenes]
+                subset[k] = (f"mean over {len(scenes)} of {len(expected)} scenes ({', '.join(scenes)}), those every "
+                             f"row of this preset ran; not in the mean: {', '.join(missing)} (Table 5 says why); "
+                             f"the paper's value is over all {len(expected)}")
             continue
-        values[k] = {m: _scene_mean([aggregate(cell.get((*k, s), []), g) for s in scenes], scenes)
-                     for m, g in getters.items()}
-        if len(scenes) < len(expected):
-            missing = [s for s in expected if s not in scenes]
-            subset[k] = (f"mean over {len(scenes)} of {len(expected)} scenes ({', '.join(scenes)}), those every "
-                         f"row of this preset ran; not in the mean: {', '.join(missing)} (Table 5 says why); "
-                         f"the paper's value is over all {len(expected)}")
+        values[k] = {m: Value.absent(why) for m in names}
     return DatasetMeans(dataset, expected, common, values, subset, extra, runs)
-
-
-def _scene_mean(values: list[Value], scenes: list[str]) -> Value:
-    """The mean over scenes of the scenes' seed means. Its sd is what one seed's mean over these scenes
-    would spread by (reports.stats.mean_of_means), its n the fewest seeds of a scene, and its per-seed
-    values the seeds every scene ran (for paired differences)."""
-    bad = [(s, v.reason) for s, v in zip(scenes, values) if not v.ok]
-    if bad:
-        return Value.absent(_scene_reasons(dict(bad)))
-    notes = tuple(dict.fromkeys(f"{s}: {n}" for s, v in zip(scenes, values) for n in v.notes))
-    mean, sd = mean_of_means([(v.mean, v.std) for v in values])
-    ns = sorted({v.n for v in values})
-    if len(ns) > 1:
-        notes += (f"seeds per scene: {', '.join(f'{s} {v.n}' for s, v in zip(scenes, values))}; n is the fewest"
-                  + ("; no sd: a scene has one seed" if sd is None else ""),)
-    per_seed = [dict(v.seeds) for v in values]
-    common = sorted(set.intersection(*(set(d) for d in per_seed))) if per_seed else []
-    seeds = tuple((s, sum(d[s] for d in per_seed) / len(per_seed)) for s in common)
-    return Value(mean, sd, ns[0], None, notes, seeds)
-
-
-def _scene_reasons(reasons: dict[str, str | None]) -> str:
-    distinct = set(reasons.values())
-    if len(distinct) == 1:
-        why = next(iter(distinct)) or "no value"
-        return why if len(reasons) == 1 else f"{why} (every scene)"
-    return one_line("; ".join(f"{s}: {w}" for s, w in reasons.items()), 400)
 
 
 def table2(runs: list[RunResult], ctx: Context) -> Section:
     sec = Section("table2_realworld", "Table 2 — real scenes, dataset means (PSNR, SSIM, LPIPS, #GS)")
-    real = [r for r in runs if not is_pattern(r)]
+    real = ctx.cells.runs_at(ctx.rows(real=True))
     if not real:
         sec.empty_reason = "no real-scene runs below the runs directory."
         return sec
@@ -339,7 +301,7 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
                      "from the scenes' seed sds: √(Σ sd²) / S; n is the fewest seeds of a scene.")
     all_rows = []
     for ds in sorted({r.dataset for r in real}, key=dataset_rank):
-        dm = dataset_means(ds, real, T2_GETTERS)
+        dm = dataset_means(ctx.cells, ds, [c.key for c in T2_COLUMNS])
         rows = []
         for k, vals in dm.values.items():
             label, notes = ctx.label(k, [r for r in dm.runs if (r.method, r.budget, r.preset) == k])
@@ -398,15 +360,16 @@ def not_run_note(paper_rows: list[str], methods_run: set[str]) -> str:
 
 # ---- Tables 3, 4, 5: one row per scene × method -------------------------------------------------
 
-def _scene_rows(real: list[RunResult], getters: dict, columns: list[Column], ctx: Context, paper_lookup,
+def _scene_rows(rows: "pd.Index", names: dict[str, str], columns: list[Column], ctx: Context, paper_lookup,
                 rank_extra=lambda rs: (), info=lambda rs: {}) -> list[tuple[str, Row, list[RunResult]]]:
-    """(dataset, row, its runs) for each (dataset, scene, method, budget, preset) that has any run."""
-    cell = _by(real, "dataset", "scene", "method", "budget", "preset")
+    """(dataset, row, its runs) for each (dataset, scene, method, budget, preset) of ``rows`` (each
+    column's value: the seed mean of the quantity ``names[column key]``)."""
+    means = seed_means(ctx.cells, SCENE_KEYS, dict.fromkeys(names.values()), rows)
     out = []
-    for (ds, scene, m, b, p), rs in sorted(cell.items(), key=lambda kv: (dataset_rank(kv[0][0]), scene_rank(
-            kv[0][0], kv[0][1]), row_order(kv[0][2:]))):
+    for (ds, scene, m, b, p), rs in sorted(groups(ctx.cells, SCENE_KEYS, rows).items(), key=lambda kv: (
+            dataset_rank(kv[0][0]), scene_rank(kv[0][0], kv[0][1]), row_order(kv[0][2:]))):
         label, notes = ctx.label((m, b, p), rs)
-        row = Row([scene, label], {c.key: aggregate(rs, getters[c.key]) for c in columns},
+        row = Row([scene, label], {c.key: means.get((ds, scene, m, b, p), names[c.key]) for c in columns},
                   rank_group=(scene, budget_group(b), p, *rank_extra(rs)), label_notes=notes,
                   info=info(rs), csv=_csv_id((m, b, p), dataset=ds, scene=scene))
         for c in columns:
@@ -422,7 +385,8 @@ def _devices(rs: list[RunResult]) -> str:
 
 def table3(runs: list[RunResult], ctx: Context) -> Section:
     sec = Section("table3_speed", "Table 3 — training minutes and rendering speed")
-    real = [r for r in runs if not is_pattern(r)]
+    rows_ = ctx.rows(real=True)
+    real = ctx.cells.runs_at(rows_)
     if not real:
         sec.empty_reason = "no real-scene runs below the runs directory."
         return sec
@@ -431,8 +395,7 @@ def table3(runs: list[RunResult], ctx: Context) -> Section:
                      "scene among rows of the same preset and device (all budgets compete, as in the paper).")
     cols = [Column("train_minutes", "Train min↓", fixed(1), "lower", "ratio"),
             Column("render_fps", "FPS↑", fixed(1), "higher", "ratio")]
-    getters = {"train_minutes": TRAIN_MIN, "render_fps": FPS}
-    rows = _scene_rows(real, getters, cols, ctx,
+    rows = _scene_rows(rows_, {"train_minutes": "train_minutes", "render_fps": "render_fps"}, cols, ctx,
                        lambda m, b, s, k: ctx.paper_value(ctx.paper.t3(m, b, s, k), "Table 3"),
                        rank_extra=lambda rs: (_devices(rs),),
                        info=lambda rs: {"Device": _devices(rs),
@@ -449,8 +412,10 @@ def table3(runs: list[RunResult], ctx: Context) -> Section:
 
 def table4(runs: list[RunResult], ctx: Context) -> Section:
     sec = Section("table4_consistency", "Table 4 — view consistency (PSNR, flow-warped MSE and FLIP, i → i+7)")
-    real = [r for r in runs if not is_pattern(r) and (r.consistency or (r.status != "ok" and
-                                                                       _wants_consistency(r)))]
+    real_rows = ctx.rows(real=True)
+    rows_ = real_rows[[bool(r.consistency or (r.status != "ok" and _wants_consistency(r)))
+                       for r in ctx.cells.runs_at(real_rows)]]
+    real = ctx.cells.runs_at(rows_)
     if not real:
         sec.empty_reason = ("no run computed view consistency (`result.consistency`); the `consistency` "
                             "experiment (eval.consistency=true) does.")
@@ -466,8 +431,8 @@ def table4(runs: list[RunResult], ctx: Context) -> Section:
             Column("flip", "FLIP7↓", fixed(3), "lower", "diff", 3),
             Column("pop_ratio", "Pop7↓", fixed(2), "lower"),
             Column("popped_fraction", "Popped %", lambda v: f"{100 * v:.2f}")]
-    getters = {k: consistency_getter(k) for k in ("psnr", "mse", "flip", "pop_ratio", "popped_fraction")}
-    rows = _scene_rows(real, getters, cols, ctx,
+    names = {k: f"consistency_{k}" for k in ("psnr", "mse", "flip", "pop_ratio", "popped_fraction")}
+    rows = _scene_rows(rows_, names, cols, ctx,
                        lambda m, b, s, k: ctx.paper_value(ctx.paper.t4(m, b, s, k), "Table 4"),
                        rank_extra=lambda rs: (_flows(rs),), info=lambda rs: {"Flow": _flows(rs)})
     for _, row, rs in rows:
@@ -499,7 +464,8 @@ def _flows(rs: list[RunResult]) -> str:
 
 def table5(runs: list[RunResult], ctx: Context) -> Section:
     sec = Section("table5_per_scene", "Table 5 — per-scene PSNR and number of Gaussians")
-    real = [r for r in runs if not is_pattern(r)]
+    rows_ = ctx.rows(real=True)
+    real = ctx.cells.runs_at(rows_)
     if not real:
         sec.empty_reason = "no real-scene runs below the runs directory."
         return sec
@@ -507,7 +473,7 @@ def table5(runs: list[RunResult], ctx: Context) -> Section:
                      "scene within a budget group in bold, second in italics. ×paper is ours / paper.")
     cols = [Column("psnr", "PSNR↑", fixed(2), "higher", "diff", 2),
             Column("num_gaussians", "#GS", count, None, "ratio")]
-    rows = _scene_rows(real, {"psnr": PSNR, "num_gaussians": NUM_GS}, cols, ctx,
+    rows = _scene_rows(rows_, {"psnr": "psnr", "num_gaussians": "num_gaussians"}, cols, ctx,
                        lambda m, b, s, k: ctx.paper_value(ctx.paper.t5(m, b, s, k), "Table 5"))
     for ds in sorted({d for d, _, _ in rows}, key=dataset_rank):
         block = [r for d, r, _ in rows if d == ds]

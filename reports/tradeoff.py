@@ -6,33 +6,31 @@ table prints. 2D patterns: one panel per pattern, a point per method × cap, mea
 
 from __future__ import annotations
 
-from collections import defaultdict
-
 from protocols.results import RunResult
+from reports.aggregate import Cells, seed_means
 from reports.paper import PATTERNS, dataset_rank
 from reports.plots import Point, panel_name
-from reports.runs import aggregate, is_pattern, pattern_cap
-from reports.tables import FPS, NUM_GS, PSNR, dataset_means, row_order
+from reports.runs import PATTERN_DATASETS
+from reports.tables import dataset_means, row_order
 
 
-def tradeoff_points(runs: list[RunResult]) -> tuple[list[Point], list[Point]]:
-    """(PSNR vs FPS points, PSNR vs #Gaussians points)."""
+def tradeoff_points(runs: list[RunResult], cells: Cells | None = None) -> tuple[list[Point], list[Point]]:
+    """(PSNR vs FPS points, PSNR vs #Gaussians points); ``cells``: the runs' results table if made."""
+    cells = cells if cells is not None else Cells.of(runs)
+    f = cells.frame
     fps: list[Point] = []
     gs: list[Point] = []
-    real = [r for r in runs if not is_pattern(r)]
-    for ds in sorted({r.dataset for r in real}, key=dataset_rank):
-        dm = dataset_means(ds, real, {"psnr": PSNR, "fps": FPS, "gs": NUM_GS})
+    for ds in sorted(set(f.loc[~f["dataset"].isin(PATTERN_DATASETS), "dataset"]), key=dataset_rank):
+        dm = dataset_means(cells, ds, ["psnr", "render_fps", "num_gaussians"])
         for (m, b, p), v in sorted(dm.values.items(), key=lambda kv: row_order(kv[0])):
-            fps.append(Point(panel_name(ds), m, b, p, v["psnr"], v["fps"]))
-            gs.append(Point(panel_name(ds), m, b, p, v["psnr"], v["gs"]))
-    cells: dict[tuple, list[RunResult]] = defaultdict(list)
-    for r in runs:
-        if is_pattern(r) and pattern_cap(r) is not None:
-            cells[(r.scene, r.method, pattern_cap(r), r.preset)].append(r)
+            fps.append(Point(panel_name(ds), m, b, p, v["psnr"], v["render_fps"]))
+            gs.append(Point(panel_name(ds), m, b, p, v["psnr"], v["num_gaussians"]))
+    fits = cells.rows(f["dataset"].isin(PATTERN_DATASETS) & f["cap"].notna())
+    means = seed_means(cells, ["scene", "method", "cap", "preset"], ["psnr", "render_fps", "num_gaussians"], fits)
     order = lambda k: (PATTERNS.index(k[0]) if k[0] in PATTERNS else 99, k[0], k[2], row_order((k[1], "", k[3])))
-    for (pattern, m, cap, p) in sorted(cells, key=order):
-        rs = cells[(pattern, m, cap, p)]
-        psnr = aggregate(rs, PSNR)
-        fps.append(Point(panel_name("patterns", pattern), m, f"cap {cap}", p, psnr, aggregate(rs, FPS)))
-        gs.append(Point(panel_name("patterns", pattern), m, f"cap {cap}", p, psnr, aggregate(rs, NUM_GS)))
+    for key in sorted(means.keys(), key=order):
+        pattern, m, cap, p = key
+        psnr = means.get(key, "psnr")
+        fps.append(Point(panel_name("patterns", pattern), m, f"cap {cap}", p, psnr, means.get(key, "render_fps")))
+        gs.append(Point(panel_name("patterns", pattern), m, f"cap {cap}", p, psnr, means.get(key, "num_gaussians")))
     return fps, gs

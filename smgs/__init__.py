@@ -13,4 +13,21 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from smgs.camera import Camera
 from smgs.raster import MODES, RenderOutput, rasterize, rasterize_splats
 from smgs.version import __version__
-__all__ = ["Camera", "rasterize", "rasterize_splats", "RenderOutput", "MODES", "__version__"]
+__all__ = ["Camera", "rasterize", "rasterize_splats", "RenderOutput", "MODES", "__version__", "results", "curves"]
+
+
+def results(*runs_dirs, per_view: bool = False):
+    """Every cell below the runs directories as a pandas DataFrame, one row per cell (failed and
+    skipped ones with their reason; ``per_view=True``: one row per cell and test view). Columns and
+    dtypes: docs/reports.md ("Results as data"), ``smgs.cells.table.CELL_COLUMNS``."""
+    from smgs.cells.table import results as table   # pandas loads here, not at ``import smgs``
+
+    return table(*runs_dirs, per_view=per_view)
+
+
+def curves(*runs_dirs):
+    """The error-against-time curves of every cell below the runs directories as a long pandas
+    DataFrame: one row per evaluation during training (step, train seconds, PSNR, #Gaussians)."""
+    from smgs.cells.table import curves as table
+
+    return table(*runs_dirs)

@@ -1,5 +1,6 @@
-"""``smgs COMMAND [ARGS...]``: run an experiment, build a report, score or export a 3DGS PLY, render a
-run's video, list what can be named, benchmark. ``smgs COMMAND --help`` shows the command's own options."""
+"""``smgs COMMAND [ARGS...]``: run an experiment, build a report, write the results table, score or
+export a 3DGS PLY, render a run's video, list what can be named, benchmark. ``smgs COMMAND --help``
+shows the command's own options."""
 
 from __future__ import annotations
 
@@ -39,6 +40,12 @@ def _with_argv(prog: str, args: list[str], fn: Callable[[], object]) -> int:
 
 def _report(args: list[str]) -> int:
     from reports.build import main
+
+    return main(args)
+
+
+def _results(args: list[str]) -> int:
+    from smgs_cli.results import main
 
     return main(args)
 
@@ -85,6 +92,8 @@ COMMANDS = (
     Command("report", "RUNS_DIR... [--out DIR] [--no-stability]",
             "(re)build report.md, report.html, CSVs and plots from results.json files (python -m reports.build)",
             _report),
+    Command("results", "RUNS_DIR... [--out FILE] [--format csv|parquet|json] [--per-view|--curves]",
+            "write the results table (every cell, or per view, or the curves) as CSV, parquet or JSON", _results),
     Command("evaluate", "MODEL.ply [KEY=VALUE ...] [--force]",
             "score a 3DGS PLY under the harness's protocol (python -m protocols.evaluate_ply)", _evaluate),
     Command("export", "RUN_DIR... [--out FILE]",

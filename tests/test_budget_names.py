@@ -110,9 +110,10 @@ def test_a_result_is_hashed_with_the_earlier_name(monkeypatch):
     """The method's complete settings enter the result's hash with ``densify.budget``, the name
     every finished result was hashed with, so the rename retrains nothing."""
     import protocols.cell as cell_module
+    import smgs.identity
 
     seen = []
-    monkeypatch.setattr(cell_module, "config_hash", lambda ident: seen.append(ident) or "h")
+    monkeypatch.setattr(smgs.identity, "config_hash", lambda ident: seen.append(ident) or "h")
     c = {**cell({"name": "5pct", "cap": None}), "method": {"name": "3dgs"}}
     cell_module.result_hash(c)
     densify = seen[0]["resolved_settings"]["densify"]

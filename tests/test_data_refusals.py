@@ -105,6 +105,45 @@ def test_an_image_listed_twice_in_a_colmap_model_is_refused(tmp_path):
 
 
 @needs_fern
+def test_an_image_listed_twice_under_another_spelling_is_refused(tmp_path):
+    """``./image010.png`` beside ``image010.png`` in images.txt is one file as two views (the copy
+    became a test view while the original trained)."""
+    import pycolmap
+
+    scene = tmp_path / "fern"
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "images").symlink_to(FERN / "images", target_is_directory=True)
+    pycolmap.Reconstruction(str(FERN / "sparse" / "0")).write_text(str(scene / "sparse" / "0"))
+    p = scene / "sparse" / "0" / "images.txt"
+    p.write_text(p.read_text().replace(" image008.png\n", " ./image010.png\n"))
+    with pytest.raises(SceneFormatError) as e:
+        check_scene("colmap", path=scene)
+    assert (f"{p} lists 1 image name(s) more than once: image010.png (also as ./image010.png) (image ids 9, 11)"
+            in str(e.value)), str(e.value)
+
+
+@needs_fern
+@pytest.mark.parametrize("focal,angle", [(1e-9, "180°"), (1e12, "2.89e-08°")])
+def test_a_focal_length_outside_any_field_of_view_names_the_file_and_camera(tmp_path, focal, angle):
+    """A focal length of 1e-9 px (a ~180° view) trained a collapsed model; one of 1e12 px failed at step 0
+    as a NonFiniteError naming neither file nor key. Both are refused up front, naming both."""
+    scene = _fern_copy(tmp_path, "cameras.bin", fx=focal, fy=focal)
+    with pytest.raises(SceneFormatError) as e:
+        check_scene("colmap", path=scene)
+    msg = str(e.value)
+    assert f"{scene / 'sparse' / '0' / 'cameras.bin'}, camera 1: fx = {focal:g} px gives the 504-px width a field " \
+           f"of view of {angle}, outside the 0.5°–170° a pinhole camera may have here" in msg, msg
+
+    from protocols.run import run_experiment
+
+    with pytest.raises(SystemExit) as stop:   # the runner: before anything runs, naming dataset.path too
+        run_experiment(["dataset=colmap", f"dataset.path={scene}", "grid.methods=[3dgs]", "report=false",
+                        f"out_dir={tmp_path / 'runs'}"])
+    assert str(stop.value).startswith(f"invalid scene, nothing was run:\n  dataset.path={scene}: {scene}")
+    assert "field of view" in str(stop.value) and not (tmp_path / "runs").exists()
+
+
+@needs_fern
 @pytest.mark.parametrize("max_width,size", [(1, "1x1"), (8, "8x6"), (20, "20x15")])
 def test_images_too_small_to_score_are_refused(max_width, size):
     with pytest.raises(SceneFormatError, match=f"the images are {size} px after the resolution rule") as e:
@@ -152,6 +191,15 @@ def test_broken_transforms_intrinsics_name_the_file_and_frame(tmp_path, cam, wor
     with pytest.raises(SceneFormatError) as e:
         load_transforms(tmp_path)
     assert f"{f} frame 0 ('f0.png')" in str(e.value) and words in str(e.value)
+
+
+@pytest.mark.parametrize("cam", [dict(fl_x=1e12, fl_y=1e12), dict(fl_x=1e-9, fl_y=1e-9), dict(fl_y=0.01)])
+def test_a_transforms_focal_length_outside_any_field_of_view_names_the_file_frame_and_keys(tmp_path, cam):
+    f = _transforms(tmp_path, **cam)
+    with pytest.raises(SceneFormatError) as e:
+        transforms_sources(tmp_path)
+    assert f"{f} frame 0 ('f0.png') (fl_x, fl_y, cx, cy): f" in str(e.value)
+    assert "outside the 0.5°–170° a pinhole camera may have here" in str(e.value)
 
 
 @pytest.mark.parametrize("angle", [0.0, -0.5, 3.2])

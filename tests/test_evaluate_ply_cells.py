@@ -86,3 +86,34 @@ def test_nothing_of_a_cell_is_removed_before_its_lock_is_held(plys, tmp_path, ca
     finally:
         release.set()
         t.join()
+
+
+def test_a_cell_holds_one_kind_of_result(plys, tmp_path, capsys):
+    """``smgs evaluate model.ply budget.name=full`` into the cell of a trained run replaced it (its
+    steps, curve and checkpoint gone, a 0-step evaluation in their place); ``smgs run`` into a cell
+    holding an evaluation took it for a changed config and replaced it. Both are refused, naming
+    both and the fix; --force replaces."""
+    import shutil
+
+    a, _ = plys
+    trained = tmp_path / "trained"
+    shutil.copytree(a.parents[5], trained)
+    cell = trained / "procedural/blocks/3dgs/full/seed0"
+    before = {p.name: p.read_bytes() for p in cell.iterdir() if p.is_file()}
+    capsys.readouterr()
+    assert _evaluate(a, trained, "budget.name=full") == 1
+    err = capsys.readouterr().err
+    assert f"{cell} holds a trained run (3dgs, 4 steps, config " in err and f"the evaluation of {a.resolve()}" in err
+    assert "nothing was changed" in err and "budget.name=pretrained" in err and "--force" in err
+    assert {p.name: p.read_bytes() for p in cell.iterdir() if p.is_file()} == before
+
+    evaluated = tmp_path / "evaluated"
+    assert _evaluate(a, evaluated, "budget.name=full") == 0
+    cell = evaluated / "procedural/blocks/3dgs/full/seed0"
+    first = (cell / "results.json").read_text()
+    s = run_experiment(TINY + [f"out_dir={evaluated}", "protocol.steps=2"])
+    assert s[0]["status"] == "failed"
+    assert f"{cell} holds the evaluation of {a.resolve()}" in s[0]["error"] and "nothing was changed" in s[0]["error"]
+    assert "--force" in s[0]["error"] and (cell / "results.json").read_text() == first
+    s = run_experiment(TINY + [f"out_dir={evaluated}", "protocol.steps=2", "force=true"])
+    assert s[0]["status"] == "ok" and read_result(cell / "results.json").steps == 2

@@ -122,18 +122,19 @@ def test_a_result_of_each_cuda_variant_and_of_the_cpu_records_which_in_results_j
     assert "mixes renderer backends or variants (cpu; cuda (kernels default, glue lean);" in md
 
 
-def test_a_non_default_variant_is_part_of_a_cells_identity_and_the_defaults_hash_as_before(tmp_path, monkeypatch):
+def test_a_non_default_variant_is_part_of_a_cuda_cells_identity_and_the_defaults_hash_as_before(tmp_path, monkeypatch):
     """The default variants hash as a config without the ``renderer`` section (results computed before
-    it existed stay valid); another kernel set or glue is another result."""
+    it existed stay valid); on a CUDA device another kernel set or glue is another result (on the CPU
+    they render nothing differently: tests/test_identity.py)."""
     from protocols.cell import result_hash
 
     for k in (backends.KERNELS_ENV, backends.GLUE_ENV):
         monkeypatch.delenv(k, raising=False)
-    cfg = _payload(tmp_path, 0, "cpu", {})["config"]
+    cfg = _payload(tmp_path, 0, "cuda:0", {})["config"]
     before = {k: v for k, v in cfg.items() if k != "renderer"}
     assert cfg["renderer"] == {"kernels": "default", "glue": "verified"} and result_hash(cfg) == result_hash(before)
-    hashes = {result_hash(_payload(tmp_path, 0, "cpu", s)["config"]) for s, _ in VARIANTS}
+    hashes = {result_hash(_payload(tmp_path, 0, "cuda:0", s)["config"]) for s, _ in VARIANTS}
     assert len(hashes) == 4 and result_hash(cfg) in hashes
     monkeypatch.setenv(backends.KERNELS_ENV, "v2")   # the environment's value is the config's, hashed as such
-    assert result_hash(_payload(tmp_path, 0, "cpu", {})["config"]) == \
-        result_hash(_payload(tmp_path, 0, "cpu", {"kernels": "v2"})["config"])
+    assert result_hash(_payload(tmp_path, 0, "cuda:0", {})["config"]) == \
+        result_hash(_payload(tmp_path, 0, "cuda:0", {"kernels": "v2"})["config"]) != result_hash(cfg)

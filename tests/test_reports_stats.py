@@ -12,10 +12,11 @@ import pytest
 
 from protocols.results import RunResult
 from reports.build import build_report
+from reports.aggregate import Cells, paired
 from reports.runs import Value
-from reports.stats import mean_of_means, paired, t_quantile
+from reports.stats import mean_of_means, t_quantile
 from reports.table_model import TIE, Column, Row, Table, fixed
-from reports.tables import PSNR, dataset_means
+from reports.tables import dataset_means
 
 sys.path.insert(0, str(Path(__file__).parent))
 from reports_tree import make_seed_tree  # noqa: E402
@@ -39,6 +40,21 @@ def test_t_quantiles_match_the_printed_table():
     assert t_quantile(0.975, 100000) == pytest.approx(1.95996, abs=1e-4)   # the normal's
     with pytest.raises(ValueError):
         t_quantile(0.975, 0)
+
+
+# t quantiles of the report before it used scipy (9235246: its own t density, Simpson's rule, bisection):
+# right to ~1e-12, so scipy's must agree with them
+BEFORE_SCIPY = {(0.975, 1): 12.706204736174936, (0.975, 2): 4.302652729749557, (0.975, 3): 3.1824463052838103,
+                (0.975, 4): 2.7764451051978405, (0.975, 9): 2.2621571627981893, (0.975, 29): 2.0452296421327034,
+                (0.95, 2): 2.9199855803537673, (0.995, 5): 4.032142983555801, (0.9, 1): 3.07768353717523}
+
+
+def test_t_quantiles_are_scipys_and_agree_with_the_report_before():
+    from scipy import stats
+
+    for (p, df), before in BEFORE_SCIPY.items():
+        assert t_quantile(p, df) == float(stats.t.ppf(p, df))
+        assert t_quantile(p, df) == pytest.approx(before, rel=1e-12, abs=0)
 
 
 def test_paired_interval_by_hand():
@@ -65,7 +81,7 @@ def test_dataset_mean_propagates_the_scene_spreads():
     def r(scene, seed, psnr):
         return RunResult(method="3dgs", dataset="tandt", scene=scene, budget="full", seed=seed, metrics={"psnr": psnr})
     runs = [r("train", 0, 20.0), r("train", 1, 21.0), r("truck", 0, 24.0), r("truck", 1, 24.0), r("truck", 2, 27.0)]
-    v = dataset_means("tandt", runs, {"psnr": PSNR}).values[("3dgs", "full", "paper")]["psnr"]
+    v = dataset_means(Cells.of(runs), "tandt", ["psnr"]).values[("3dgs", "full", "paper")]["psnr"]
     # train 20.5 ± 0.7071 (2 seeds), truck 25.0 ± 1.7321 (3 seeds): mean 22.75, sd √(0.5 + 3) / 2 = 0.9354
     assert v.mean == pytest.approx(22.75) and v.std == pytest.approx(math.sqrt(3.5) / 2) and v.n == 2
     assert v.seeds == ((0, 22.0), (1, 22.5))          # per-seed dataset means over the seeds both scenes ran

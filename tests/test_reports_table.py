@@ -7,9 +7,10 @@ import pytest
 from protocols.results import RunResult
 from reports.paper import load_paper, paper_key, row_label
 from reports.plots import pareto_front
-from reports.runs import Value, aggregate, consistency_getter, metric, pattern_cap
+from reports.aggregate import Cells, seed_means
+from reports.runs import Value, pattern_cap
 from reports.table_model import Column, Row, Table, count, fixed, ratio_text
-from reports.tables import PSNR, dataset_means
+from reports.tables import dataset_means
 
 
 def _table(values: list[float | None], better: str = "higher", groups=None) -> Table:
@@ -69,27 +70,41 @@ def _run(seed: int, psnr: float | None, status: str = "ok", **kw) -> RunResult:
                      status=status, metrics={} if psnr is None else {"psnr": psnr}, **kw)
 
 
-def test_aggregate_seeds_partial_and_absent():
-    v = aggregate([_run(0, 20.0), _run(1, 22.0)], PSNR)
+def _mean(runs: list[RunResult], name: str = "psnr") -> Value:
+    """The seed mean of one row (the runs' method), from the results table of ``runs``."""
+    return seed_means(Cells.of(runs), ["method"], [name]).get(("softmax_gs",), name)
+
+
+def test_seed_means_partial_and_absent():
+    v = _mean([_run(0, 20.0), _run(1, 22.0)])
     assert v.mean == 21.0 and v.std == pytest.approx(2 ** 0.5) and v.n == 2 and not v.notes
-    part = aggregate([_run(0, 20.0), _run(1, None, "failed", error="ValueError: x")], PSNR)
+    part = _mean([_run(0, 20.0), _run(1, None, "failed", error="ValueError: x")])
     assert part.mean == 20.0 and part.notes == ("1 of 2 seeds; failed: ValueError: x",)
-    none = aggregate([_run(0, None, "failed", error="E: a"), _run(1, None, "failed", error="E: b")], PSNR)
+    none = _mean([_run(0, None, "failed", error="E: a"), _run(1, None, "failed", error="E: b")])
     assert not none.ok and none.reason == "seed 0: failed: E: a; seed 1: failed: E: b"
-    nan = aggregate([_run(0, float("nan"))], PSNR)
-    assert not nan.ok and "nan" in nan.reason
-    lp = aggregate([_run(0, 20.0, missing={"lpips": "weights absent"})], metric("lpips"))
+    nan = _mean([_run(0, float("nan"))])
+    assert not nan.ok and nan.reason == "PSNR recorded as nan"
+    assert _mean([_run(0, None)]).reason == "PSNR not recorded"
+    lp = _mean([_run(0, 20.0, missing={"lpips": "weights absent"})], "lpips")
     assert lp.reason == "LPIPS missing: weights absent"
-    assert aggregate([], PSNR).reason == "no result in the runs directory"
+    assert _mean([]).reason == "no result in the runs directory"
 
 
 def test_consistency_values_and_missing():
     r = _run(0, 25.0, consistency={"psnr": 25.1, "mse": {"missing": "empty mask"}, "flip_minsub": 0.01,
                                    "flip_name": "flip_minsub", "estimator": "opencv"})
-    assert consistency_getter("psnr")(r) == 25.1
-    assert consistency_getter("mse")(r).reason == "mse missing: empty mask"
-    assert consistency_getter("flip")(r) == 0.01
-    assert consistency_getter("mse")(_run(0, 25.0)).reason == "view consistency not computed"
+    def q(r: RunResult, name: str):
+        return Cells.of([r]).quantity(name).iloc[0]
+    assert q(r, "consistency_psnr").value == 25.1
+    assert q(r, "consistency_mse").reason == "mse missing: empty mask"
+    assert q(r, "consistency_flip").value == 0.01
+    assert q(_run(0, 25.0), "consistency_mse").reason == "view consistency not computed"
+    no_psnr = _run(0, 24.0, consistency={"mse": 0.1, "estimator": "geometric"})
+    assert q(no_psnr, "consistency_psnr").value == 24.0        # the test-view PSNR, the same quantity
+    assert q(no_psnr, "consistency_flip").reason == "flip not recorded"
+    nan = _run(0, 24.0, consistency={"psnr": float("nan"), "mse": "n/a", "estimator": "geometric"})
+    assert q(nan, "consistency_psnr").reason == "psnr recorded as nan"
+    assert q(nan, "consistency_mse").reason == "mse not a number ('n/a')"
 
 
 def test_pattern_cap_conventions():
@@ -122,11 +137,11 @@ def test_dataset_means_over_common_scenes_only():
                          error=None if status == "ok" else "boom", metrics={"psnr": psnr} if psnr else {})
     runs = [r("3dgs", "train", 22.0), r("3dgs", "truck", 25.0), r("softmax_gs", "train", 23.0),
             r("softmax_gs", "truck", None, "failed")]
-    dm = dataset_means("tandt", runs, {"psnr": PSNR})
+    dm = dataset_means(Cells.of(runs), "tandt", ["psnr"])
     assert dm.common["paper"] == ["train"]
     assert dm.values[("3dgs", "full", "paper")]["psnr"].mean == 22.0  # truck left out for both rows
     assert "mean over 1 of 2 scenes" in dm.subset_note[("3dgs", "full", "paper")]
-    full = dataset_means("tandt", runs[:2] + [r("softmax_gs", "truck", 26.0), runs[2]], {"psnr": PSNR})
+    full = dataset_means(Cells.of(runs[:2] + [r("softmax_gs", "truck", 26.0), runs[2]]), "tandt", ["psnr"])
     assert full.values[("softmax_gs", "full", "paper")]["psnr"].mean == 24.5 and not full.subset_note
 
 

@@ -24,8 +24,10 @@ LAYERS = ("smgs", "baselines", "protocols", "reports", "smgs_cli")  # each may i
 # Inside smgs, each group may import its own and those before it: plain helpers that import no other
 # smgs module (version, env, atomic writes, the device setting, the camera, a setting's ranges, what
 # the plug-in registries share), then the renderer, the
-# scenes, the metrics, training, model files (the PLY and its mapping onto the trainer), and the
-# package's front (smgs/__init__.py, the demo). A dotted name covers its package and submodules;
+# scenes, the metrics, training, a cell's identity (its settings and inputs, as the runner and the
+# reports compare them), model files (the PLY and its mapping onto the trainer), run results
+# (results.json and the pandas tables of them), and the package's front (smgs/__init__.py, the
+# demo). A dotted name covers its package and submodules;
 # "smgs" is the package's own __init__ only. A module in no group is reported, to be placed.
 SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
     ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera", "smgs.ranges", "smgs.plugins"),
@@ -33,7 +35,9 @@ SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
     ("smgs.data",),
     ("smgs.metrics",),
     ("smgs.train",),
+    ("smgs.identity",),
     ("smgs.io",),
+    ("smgs.cells",),
     ("smgs.demo", "smgs"),
 )
 UNPLACED = "(no group of SMGS_LAYERS)"

@@ -7,6 +7,7 @@ from plain values. The loaders are importable on their own (``smgs.data.colmap.l
 imports (pycolmap, OpenCV) happen on use.
 """
 
+from smgs.data.contract import SceneContractError, check_scene_contract
 from smgs.data.datasets import DATA_ROOT_ENV, DatasetSpec, resolve_data_root
 from smgs.data.formats import SceneFormat, SceneRequest
 from smgs.data.registry import check_scene, get_dataset, load_scene
@@ -33,4 +34,5 @@ def __getattr__(name: str):
 __all__ = ["Scene", "View", "camera_extent", "split_every", "ResolutionRule", "SceneFormat", "SceneRequest",
            "DatasetSpec", "GENERIC_RULES", "DATA_ROOT_ENV", "get_dataset", "resolve_data_root",
            "load_scene", "check_scene", "load_colmap", "load_transforms", "make_procedural_scene",
-           "DatasetNotFoundError", "SceneFormatError", "MissingImageError"]
+           "DatasetNotFoundError", "SceneFormatError", "MissingImageError", "SceneContractError",
+           "check_scene_contract"]

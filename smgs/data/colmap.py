@@ -24,7 +24,7 @@ from smgs.data.images import (ResolutionRule, check_aspect, check_min_size, chec
                               resolve_auto_folder, scale_intrinsics)
 from smgs.data.rules import get_generic_rule
 from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
-                             camera_extent, check_split, split_description, split_every)
+                             camera_extent, check_split, split_description, split_every, view_key)
 
 LAYOUT = ("<scene>/images/<name as in the model>, optional <scene>/images_N/, and a COLMAP model "
           "<scene>/sparse/0/{cameras,images,points3D}.{bin,txt} (or <scene>/sparse/)")
@@ -132,6 +132,11 @@ def model_file(model_dir: Path, name: str) -> Path:
     return b if b.is_file() else Path(model_dir) / f"{name}.txt"
 
 
+def model_files(model_dir: Path) -> list[Path]:
+    """The files of a model that pycolmap reads (``model_file`` of each: .bin first)."""
+    return [p for p in (model_file(model_dir, f) for f in _MODEL_FILES) if p.is_file()]
+
+
 QUAT_TOLERANCE = 0.01
 """A rotation quaternion whose length is within this of 1 is normalised (and the scene's meta says how
 many were); one further off, of length 0 or not finite, is refused. COLMAP writes unit quaternions,
@@ -184,18 +189,36 @@ def _viewmat(img, where: Path) -> tuple[np.ndarray, float]:
 
 
 def _check_unique_names(where: Path, images) -> None:
-    """Each image name once: a name twice is one file seen as two views, one of which may be held out
-    as a test view while its copy trains."""
-    ids: dict[str, list[int]] = {}
-    for img in images:
-        ids.setdefault(img.name, []).append(int(img.image_id))
-    twice = {name: sorted(i) for name, i in ids.items() if len(i) > 1}
+    """Each image name once, also under another spelling of its path (``view_key``): a name twice
+    is one file seen as two views, one of which may be held out as a test view while its copy trains."""
+    ids: dict[str, list[tuple[int, str]]] = {}
+    for img in images:   # by the path a name names: ./image010.png is image010.png
+        ids.setdefault(view_key(img.name), []).append((int(img.image_id), img.name))
+    twice = {key: sorted(i) for key, i in ids.items() if len(i) > 1}
     if twice:
-        listed = "; ".join(f"{name} (image ids {', '.join(map(str, i))})" for name, i in sorted(twice.items())[:5])
+        def spelled(key: str, listed: list[tuple[int, str]]) -> str:
+            names = sorted({n for _, n in listed} - {key})
+            as_ = f" (also as {', '.join(names)})" if names else ""
+            return f"{key}{as_} (image ids {', '.join(str(i) for i, _ in listed)})"
+
+        listed = "; ".join(spelled(key, i) for key, i in sorted(twice.items())[:5])
         raise SceneFormatError(
             f"{where} lists {len(twice)} image name(s) more than once: {listed}"
             f"{' and more' if len(twice) > 5 else ''}. One file would be both a training and a test view; "
             "keep one image per name (colmap image_deleter) and export the model again")
+
+
+def _check_unique_files(model_dir: Path, images: list[ColmapImage], paths: list[Path]) -> None:
+    """Each image file once: two names of the model found as one file (``image010.jpg`` read from
+    the ``image010.png`` an images_N folder holds, a link) would be one image as two views."""
+    seen: dict[Path, str] = {}
+    for im, p in zip(images, paths):
+        key = p.resolve()
+        if key in seen:
+            raise SceneFormatError(
+                f"COLMAP model {model_dir}: images {seen[key]!r} and {im.name!r} are both the file {p}: one file "
+                "would be both a training and a test view; keep one image per file (colmap image_deleter)")
+        seen[key] = im.name
 
 
 def read_colmap_model(model_dir: Path, with_points: bool = True) -> ColmapModel:
@@ -281,6 +304,7 @@ def colmap_sources(path: str | Path, images: str | None = None, rule: Resolution
             raise MissingImageError(f"image {folder / im.name} (listed in COLMAP model {mdir}) is missing; "
                                     f"every image of the model must be in {folder}")
         paths.append(p)
+    _check_unique_files(mdir, model.images, paths)
     src = image_size(paths[0])
     check_min_size(paths[0], rule.target_size(*src), rule, src)
     return ColmapSources(scene_dir, mdir, model, rule, folder_name, paths)

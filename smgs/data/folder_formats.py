@@ -98,6 +98,14 @@ class ColmapFormat(FolderFormat):
         folder, rule, over, _ = self.source(request)
         colmap_sources(folder, rule=rule, test_every=request.test_every, with_points=False, **over)
 
+    def inputs(self, request: SceneRequest) -> list[Path]:
+        """The model's files and every image it lists, from the folder the rule reads."""
+        from smgs.data.colmap import colmap_sources, model_files
+
+        folder, rule, over, _ = self.source(request)
+        sources = colmap_sources(folder, rule=rule, test_every=request.test_every, with_points=False, **over)
+        return [*model_files(sources.model_dir), *sources.paths]
+
     @staticmethod
     def is_scene(folder: Path) -> bool:
         return (folder / "sparse").is_dir()
@@ -122,6 +130,14 @@ class TransformsFormat(FolderFormat):
 
         folder, rule, over, _ = self.source(request)
         transforms_sources(folder, rule=rule, test_every=request.test_every, **over)
+
+    def inputs(self, request: SceneRequest) -> list[Path]:
+        """The transforms files and every frame's image."""
+        from smgs.data.transforms import transforms_sources
+
+        folder, rule, over, _ = self.source(request)
+        sources = transforms_sources(folder, rule=rule, test_every=request.test_every, **over)
+        return [*sources.json_files, *(e.path for e in sources.entries)]
 
     @staticmethod
     def is_scene(folder: Path) -> bool:

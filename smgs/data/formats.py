@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from pathlib import Path
+from typing import Any, Protocol, Sequence, runtime_checkable
 
 from smgs.data.datasets import DatasetSpec
 from smgs.data.scene import Scene
@@ -77,14 +78,49 @@ class ChecksScenes(Protocol):
         ...
 
 
-def make_scene(fmt: SceneFormat, request: SceneRequest, trajectory_between: int | None = None) -> Scene:
-    """The format's scene, with a video trajectory when ``trajectory_between`` is set: the scene's
-    own where its format made one (the procedural scene's ring), else ``trajectory_between`` frames
-    between consecutive test cameras (a flat scene, one fixed camera, has none)."""
-    scene = fmt.load(request)
+@runtime_checkable
+class ListsInputs(Protocol):
+    """Optional, beside ``SceneFormat``: the files ``load(request)`` reads (images, camera model,
+    points), without decoding an image; the harness fingerprints them (``smgs.data.fingerprint``) to
+    notice a scene changed on disk. A format that makes its scenes returns none."""
+
+    def inputs(self, request: SceneRequest) -> Sequence[Path]:
+        ...
+
+
+def scene_inputs(fmt: SceneFormat, request: SceneRequest) -> dict[str, Any]:
+    """The fingerprint of the files the format reads for ``request`` (``ListsInputs``); for a format
+    that does not list them, a record saying its scenes are not fingerprinted."""
+    from smgs.data.fingerprint import fingerprint, not_listed
+
+    inputs = getattr(fmt, "inputs", None)
+    if not callable(inputs):
+        cls = type(fmt)
+        return not_listed(f"scene format {cls.__module__}.{cls.__qualname__} lists no input files (inputs(request), "
+                          "docs/adding-a-scene-format.md): a change on disk goes unnoticed")
+    return fingerprint(inputs(request))
+
+
+def make_scene(fmt: SceneFormat, request: SceneRequest, trajectory_between: int | None = None,
+               where: str | None = None) -> Scene:
+    """The format's scene, checked against the scene contract (``smgs.data.contract``: whatever the
+    format, a ``SceneContractError`` naming ``where``, default ``describe_request``), with a video
+    trajectory when ``trajectory_between`` is set: the scene's own where its format made one (the
+    procedural scene's ring), else ``trajectory_between`` frames between consecutive test cameras (a
+    flat scene, one fixed camera, has none)."""
+    from smgs.data.contract import check_scene_contract
+
+    scene = check_scene_contract(fmt.load(request), where or describe_request(fmt, request),
+                                 needs_test=bool(request.test_every))
     if trajectory_between is not None and not scene.flat and not scene.trajectory:
         with_trajectory(scene, trajectory_between)
     return scene
+
+
+def describe_request(fmt: SceneFormat, request: SceneRequest) -> str:
+    """The scene ``request`` asks of ``fmt``, for an error: its name, dataset and format class."""
+    cls = type(fmt)
+    return f"scene {request.scene!r} of {request.dataset!r} (scene format {cls.__module__}.{cls.__qualname__})"
 
 
 def with_trajectory(scene: Scene, between: int) -> None:

@@ -43,6 +43,13 @@ PRINCIPAL_POINT_SLACK = 1.0
 the frame, but one image size beyond the edge is a unit or entry error (normalised, swapped or
 scaled values), which renders every view off its rays."""
 
+FIELD_OF_VIEW_DEG = (0.5, 170.0)
+"""The angles of view (degrees, across the image's width and across its height) a pinhole camera may
+have: a 1200 mm lens on a full-frame sensor sees 1.7° across, an undistorted wide-angle capture
+about 120°; 180° is a focal length of 0 and a focal length of 1e12 px a field of view of 1e-8°,
+both a unit or entry error (a focal length in mm, or normalised by the image size) that trains a
+model nobody can use: a ~180° view collapses, a 1e-8° one overflows float32 at the first step."""
+
 
 @dataclass(frozen=True)
 class ResolutionRule:
@@ -174,8 +181,9 @@ def check_min_size(where: object, size: tuple[int, int], rule: ResolutionRule, s
 
 
 def check_pinhole(where: str, K: np.ndarray, size: tuple[int, int]) -> None:
-    """A camera's intrinsics can render its image: focal lengths finite and positive, the principal
-    point finite and within ``PRINCIPAL_POINT_SLACK`` image sizes of the frame. ``where`` names the
+    """A camera's intrinsics can render its image: focal lengths finite and positive and giving an
+    angle of view within ``FIELD_OF_VIEW_DEG``, the principal point finite and within
+    ``PRINCIPAL_POINT_SLACK`` image sizes of the frame. ``where`` names the
     file and the camera or frame; the error says what to fix."""
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     w, h = size
@@ -183,12 +191,31 @@ def check_pinhole(where: str, K: np.ndarray, size: tuple[int, int]) -> None:
     if bad:
         raise SceneFormatError(f"{where}: focal length {', '.join(bad)}; a focal length is a positive number of "
                                "pixels. Fix the camera's calibration (or remove the camera and its images)")
+    fov = field_of_view_problem(fx, fy, size)
+    if fov:
+        raise SceneFormatError(f"{where}: {fov}")
     s = PRINCIPAL_POINT_SLACK
     if not all(math.isfinite(v) for v in (cx, cy)) or not (-s * w <= cx <= (1 + s) * w and -s * h <= cy <= (1 + s) * h):
         raise SceneFormatError(
             f"{where}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies more than one image size outside its "
             f"{w}x{h} image; cx and cy are pixels from the image's top-left corner (about {w / 2:g}, {h / 2:g} "
             "for an undistorted camera). Fix the camera's calibration (pixels, not normalised units)")
+
+
+def field_of_view_problem(fx: float, fy: float, size: tuple[int, int]) -> str | None:
+    """Why finite, positive focal lengths ``fx``, ``fy`` (px) give a ``size`` image an angle of view
+    outside ``FIELD_OF_VIEW_DEG`` (None when they do not): the angle, the range and the focal lengths
+    that fit it, and the likely cause."""
+    lo, hi = FIELD_OF_VIEW_DEG
+    for axis, f, n in (("fx", fx, size[0]), ("fy", fy, size[1])):
+        angle = math.degrees(2 * math.atan(0.5 * n / f))
+        if not lo <= angle <= hi:
+            f_lo, f_hi = (0.5 * n / math.tan(math.radians(a) / 2) for a in (hi, lo))
+            return (f"{axis} = {f:g} px gives the {n}-px {'width' if axis == 'fx' else 'height'} a field of view of "
+                    f"{angle:.3g}°, outside the {lo:g}°–{hi:g}° a pinhole camera may have here (a focal length of "
+                    f"{f_lo:.3g}–{f_hi:.3g} px); a focal length is in pixels of the image it calibrates, not mm "
+                    "or normalised units. Fix the camera's calibration")
+    return None
 
 
 def check_scene_scale(images: Sequence[tuple[Path, tuple[int, int], tuple[int, int]]], tol_px: float = 1.5) -> None:

@@ -110,5 +110,9 @@ class PatternFormat:
 
     RANGES: ClassVar[dict[str, Range]] = {"size": Range(MIN_SIDE, integer=True)}
 
+    def inputs(self, request: SceneRequest) -> list:
+        """No file: the scene is made from the config alone."""
+        return []
+
     def load(self, request: SceneRequest) -> Scene:
         return pattern_scene(request.scene, self.size)

@@ -330,6 +330,10 @@ class ProceduralFormat:
     RANGES: ClassVar[dict[str, Range]] = {"n_views": Range(2, integer=True), "width": Range(MIN_SIDE, integer=True),
                                           "height": Range(MIN_SIDE, integer=True), "seed": Range(0, integer=True)}
 
+    def inputs(self, request: SceneRequest) -> list:
+        """No file: the scene is made from the config alone."""
+        return []
+
     def load(self, request: SceneRequest) -> Scene:
         return make_procedural_scene(n_views=self.n_views, size=(self.width, self.height), seed=self.seed,
                                      test_every=request.test_every)

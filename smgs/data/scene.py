@@ -6,6 +6,7 @@ out every stage that nobody needs.
 
 from __future__ import annotations
 
+import posixpath
 from dataclasses import dataclass, field
 
 import torch
@@ -81,6 +82,13 @@ class Scene:
         if not self.flat:
             caps.add("view_dependence")
         return caps
+
+
+def view_key(name: str) -> str:
+    """A view's name as the path it names: separators as ``/``, ``./`` and ``a/../`` resolved, so
+    ``./image010.png`` and ``image010.png`` are one image (a view's identity when names must be
+    unique: the formats' checks and the scene contract, ``smgs.data.contract``)."""
+    return posixpath.normpath(str(name).replace("\\", "/"))
 
 
 def camera_extent(cameras: list[Camera]) -> float:

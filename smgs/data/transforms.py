@@ -224,6 +224,7 @@ class TransformsSources:
     entries: list[_Entry]
     rule: ResolutionRule
     split: tuple[list[int], list[int], str]   # train and test indices into entries, and how chosen
+    json_files: tuple[Path, ...] = ()          # the transforms file(s) read
 
     @property
     def root(self) -> dict:
@@ -253,7 +254,7 @@ def transforms_sources(path: str | Path, images: str | None = None, rule: Resolu
     check_split(base, len(entries), len(split[0]), split[2])
     src = image_size(entries[0].path)
     check_min_size(entries[0].path, rule.target_size(*src), rule, src)
-    return TransformsSources(path, files, base, entries, rule, split)
+    return TransformsSources(path, files, base, entries, rule, split, tuple(sources.values()))
 
 
 def _reference_size(base: Path, images: str | None, e: _Entry,
