@@ -24,7 +24,7 @@ CONFIG_FILE = "config.yaml"
 # What a run writes into its folder (``ckpt-*`` and temporary ``.*.tmp`` files too): a rerun's
 # folder replaces these; anything else in the finished folder is the user's and is carried over.
 RUN_FILES = (RESULTS_FILE, POINTER, CONFIG_FILE, LOCK, "log.txt", "renders", "consistency", "trajectory.json",
-             "point_cloud.ply")
+             "point_cloud.ply", "video")
 
 
 def rerun_dir(run_dir: Path) -> Path:

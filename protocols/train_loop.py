@@ -27,6 +27,7 @@ from protocols.live_cells import NeighbourLog
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
 from protocols.run_settings import CellSettings, asked_renderer
+from protocols.run_video import end_video, start_video, video_cameras
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
 from smgs.identity import CellKey
@@ -153,6 +154,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     ``key`` the cell's identity, which its checkpoints record and match (default: the result's
     config hash and inputs); ``stops`` the stop requests of the job the cell runs in
     (``protocols.cell_stop``), if any."""
+    started = time.perf_counter()
     key = key or CellKey(result.config_hash, inputs=result.inputs or None)
     device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
@@ -199,8 +201,11 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
                                                   run.grad_threshold, log)
     if ev.consistency and (scene.trajectory or len(scene.test) >= 2):
         with clock.exclude("consistency"):
-            result.consistency = consistency(method, scene, run_dir, ev, device, asked_renderer(cfg))
+            result.consistency = consistency(method, scene, run_dir, ev, device, asked_renderer(cfg), log,
+                                             f"{cfg['scene']}/{cfg['method']['name']}")
     result.status = "ok"
+    # this process's wall time on the run (since its resume, for a resumed one): what a video's cost is a share of
+    result.diagnostics["run_seconds"] = time.perf_counter() - started
     # the final state is kept as the run's checkpoint (rendering later needs no retraining)
     _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
                                        "curve": [c.__dict__ for c in result.curve], **key.checkpoint_fields(),
@@ -360,12 +365,15 @@ def _no_popping_ratio(method, ev: EvalConfig, device: torch.device, renderer: Re
     return ""
 
 
-def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.device, renderer: Renderer) -> dict:
+def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.device, renderer: Renderer,
+                log: logging.Logger, name: str) -> dict:
     """Table 4 for this run (paper supp. Sec. 7): a video of 128 frames between consecutive test
     cameras (or the scene's own trajectory), frame i warped onto i+7, MSE and FLIP over the valid
     pixels, and the popping ratio where the leading-splat maps are made (``eval.popping_ratio``).
-    Scored on this method's own mask; the trajectory is saved beside the results."""
-    from smgs.metrics.consistency.score import consistency_row
+    Scored on this method's own mask; the trajectory is saved beside the results, and its frames,
+    as scored, are encoded as the run's videos (``protocols.run_video``). ``name``: the cell's, for
+    its progress line."""
+    from smgs.metrics.consistency.score import TABLE_STEP, consistency_row
     from smgs.data.trajectory import interpolate_trajectory
 
     if scene.trajectory:
@@ -377,10 +385,7 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.devi
         traj = interpolate_trajectory([v.camera for v in scene.test], 128)
         traj.save(run_dir / "trajectory.json")
         traj = traj.cameras()
-    # FLIP and flow cost grows with the image: render the video at most max_width wide
-    max_w = ev.consistency_max_width or 0
-    if max_w and traj[0].width > max_w:
-        traj = [c.scaled(max_w / c.width) for c in traj]
+    traj = video_cameras(traj, ev.consistency_max_width)   # at most max_width wide
 
     no_pop = _no_popping_ratio(method, ev, device, renderer)
 
@@ -388,9 +393,20 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.devi
         out = method.render(cam) if no_pop else method.render_leaders(cam)
         return out.rgb, out.depth, out.leaders
 
-    row = consistency_row(render, traj, scene=scene.name, method=method.name,
-                          test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow)
+    tap, no_video = start_video(run_dir, traj, TABLE_STEP, ev)   # the frames scored are also encoded
+    bar = progress_bar(len(traj) - 1, f"{name} consistency", unit="frame", position=1, leave=False)
+    try:
+        row = consistency_row(render, traj, scene=scene.name, method=method.name, table_step=TABLE_STEP,
+                              test_views=[(v.camera, v.rgb) for v in scene.test], estimator=ev.flow, tap=tap,
+                              progress=lambda done, total: bar.update(1))
+    except BaseException:
+        if tap is not None:
+            tap.abort()
+        raise
+    finally:
+        bar.close()
     out = row.to_json()
+    out["video"] = end_video(tap, no_video, log)
     if no_pop:
         out["pop_ratio"] = out["popped_fraction"] = Missing(no_pop).to_json()
     pairs = out.get("scores", {}).get(str(row.step), {}).get("per_pair", [])

@@ -1,5 +1,6 @@
 """``smgs COMMAND [ARGS...]``: run an experiment, build a report, write the results table, score or
-export a 3DGS PLY, list what can be named, benchmark. ``smgs COMMAND --help`` shows the command's own options."""
+export a 3DGS PLY, render a run's video, list what can be named, benchmark. ``smgs COMMAND --help``
+shows the command's own options."""
 
 from __future__ import annotations
 
@@ -61,6 +62,12 @@ def _export(args: list[str]) -> int:
     return main(args)
 
 
+def _render(args: list[str]) -> int:
+    from protocols.render_video import main
+
+    return main(args)
+
+
 def _popping(args: list[str]) -> int:
     from reports.popping import main
 
@@ -91,6 +98,9 @@ COMMANDS = (
             "score a 3DGS PLY under the harness's protocol (python -m protocols.evaluate_ply)", _evaluate),
     Command("export", "RUN_DIR... [--out FILE]",
             "write a finished run's model as a 3DGS PLY for a viewer (python -m protocols.export_ply)", _export),
+    Command("render", "RUN_DIR... [--path trajectory|test] [--out FILE]",
+            "a finished run's flythrough as a video; several runs of one scene side by side (python -m "
+            "protocols.render_video)", _render),
     Command("list", "{" + ",".join(listing.LISTED) + "}",
             "what can be named on the command line, with a line on each", listing.main),
     Command("bench", "NAME [ARGS...]",

@@ -33,7 +33,7 @@ def test_help_lists_every_subcommand_and_the_package_installs_the_command(capsys
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
     names = [c.name for c in COMMANDS]
-    assert names == ["run", "report", "results", "evaluate", "export", "list", "bench", "popping", "lpips-weights",
+    assert names == ["run", "report", "results", "evaluate", "export", "render", "list", "bench", "popping", "lpips-weights",
                      "download"]
     assert all(f"\n  {n} " in text and f"smgs {n} " in text for n in names)
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]

@@ -20,6 +20,7 @@ from reports.html.escape import esc, script_json
 from reports.html.figures import Figure, consistency_figures, params_figure, pareto_figures, run_name, time_figures
 from reports.html.images import strips, viewers
 from reports.html.tables_html import plain_table, records_table, section_html
+from reports.html.videos import players
 from reports.runs import LoadedRuns, one_line, preset_description
 from reports.table_model import SEEDS_GUIDE, Section
 
@@ -95,6 +96,8 @@ def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: s
                     'run finished).</p>')
 
     body.append(f'<h2 id="{ids("consistency-video")}">View consistency and popping along the video</h2>')
+    player_data, no_video = players(runs, runs_dir, out)
+    body += _players(player_data, no_video)
     cons = consistency_figures(runs, runs_dir)
     strip_data = strips(runs, runs_dir, out)
     if cons or strip_data:
@@ -118,7 +121,8 @@ def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: s
     body.append(_environment(results, machine))
 
     js, missing = plotly_js()
-    data = {"figures": [f.spec() for f in figures], "viewers": view_data, "plotly_missing": missing or ""}
+    data = {"figures": [f.spec() for f in figures], "viewers": view_data, "players": player_data,
+            "plotly_missing": missing or ""}
     nav = _nav("\n".join(body))
     css = (ASSETS / "report.css").read_text(encoding="utf-8")
     script = (ASSETS / "report.js").read_text(encoding="utf-8")
@@ -127,6 +131,7 @@ def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: s
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         # nothing leaves the page: no network request is allowed, inline script and local images only
         "<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; img-src 'self' file: data: blob:; "
+        "media-src 'self' file: blob:; "
         "style-src 'unsafe-inline'; script-src 'unsafe-inline' 'unsafe-eval'; font-src data:\">",
         f"<title>smgs report — {esc(runs_dir.name)}</title>", f"<style>{css}</style>",
         f"<script>{js}</script>" if js else "", "</head><body>", body[0], nav, *body[1:],
@@ -174,6 +179,40 @@ def _problems(loaded: LoadedRuns, runs_dir: Path) -> str:
     if items:
         out.append("<ul>" + "".join(items) + "</ul>")
     return "\n".join(out)
+
+
+PLAYERS_GUIDE = (
+    "Each method's flythrough along the view-consistency video, the frames exactly as the metric scored them "
+    "(8-bit), side by side for one configuration at a time, in step: one play/pause and one timeline for all. "
+    "The strip under the timeline is the flow-warped MSE of the pair (i → i+{step}) ending at each frame, one row "
+    "per method (black 0 → red → yellow → white at the highest of the configuration; a blank cell: no pair ends there or none is scored); "
+    "▼ marks the worst pair of all, a white tick each method's worst. Click the strip to go to that frame. "
+    "\"Warped error\" shows instead, over each frame dimmed, |frame i warped onto frame i+{step} − frame i+{step}| "
+    "(mean over RGB; black 0 → red → yellow → white at ≥ 0.25, the scale of the test views' maps); darker still: "
+    "pixels not scored (occluded, out of view, within 20 px of the border).")
+
+
+def _players(player_data: list[dict], no_video: dict[str, list[tuple[str, str]]]) -> list[str]:
+    """The video players of the consistency section, and why a scene's runs have no video."""
+    out = []
+    if player_data:
+        steps = sorted({p["step"] for p in player_data})
+        out.append(f"<p>{esc(PLAYERS_GUIDE.format(step='/'.join(map(str, steps))))}</p>")
+    for p in player_data:
+        out.append(f'<h3>{esc(p["scene"])}</h3><div class="player" id="{p["id"]}"></div>'
+                   + (f'<p class="caption">{esc(p["cost"])}</p>' if p["cost"] else ""))
+    if no_video:
+        items = []
+        for scene, lst in sorted(no_video.items()):
+            by_reason: dict[str, list[str]] = {}
+            for run, why in lst:
+                by_reason.setdefault(why, []).append(run)
+            for why, names in by_reason.items():
+                shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+                items.append(f"<li>{esc(scene)}: {len(names)} run{'s' if len(names) > 1 else ''} without a video "
+                             f"({esc(shown)}): {esc(why)}</li>")
+        out.append('<p class="note">Runs without a video:</p><ul class="novideo">' + "".join(items) + "</ul>")
+    return out
 
 
 def _strip(s: dict) -> str:

@@ -46,9 +46,14 @@ def abs_error_map(pred: torch.Tensor, gt: torch.Tensor, vmax: float = ERROR_MAP_
     if pred.shape != gt.shape:
         raise ValueError(f"error map of images of different shapes: {tuple(pred.shape)} vs {tuple(gt.shape)}")
     err = (quantize_8bit(pred.float()) - quantize_8bit(gt.float())).abs().mean(-1).cpu().numpy()
+    return (heat_colors(err, vmax) * 255 + 0.5).astype(np.uint8)
+
+
+def heat_colors(err: np.ndarray, vmax: float = ERROR_MAP_VMAX) -> np.ndarray:
+    """An error map [H, W] as float RGB [H, W, 3] in [0, 1]: black (0) → red → yellow → white (≥ vmax),
+    the one scale of every error map the harness draws."""
     t = np.clip(err / vmax, 0.0, 1.0) * 3.0  # three ramps: red, then green, then blue
-    rgb = np.stack([np.clip(t, 0, 1), np.clip(t - 1, 0, 1), np.clip(t - 2, 0, 1)], axis=-1)
-    return (rgb * 255 + 0.5).astype(np.uint8)
+    return np.stack([np.clip(t, 0, 1), np.clip(t - 1, 0, 1), np.clip(t - 2, 0, 1)], axis=-1)
 
 
 def png_roundtrip(img: torch.Tensor) -> torch.Tensor:

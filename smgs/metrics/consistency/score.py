@@ -19,7 +19,7 @@ valid masks (StopThePop). Frames are quantised to 8 bits first, as a saved video
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -39,6 +39,7 @@ RenderFn = Callable[[Camera], tuple]
 
 BORDER_PX = 20
 DEFAULT_STEPS = (7, 1)
+TABLE_STEP = 7   # Table 4's pair: frame i warped onto frame i+7
 
 
 @dataclass
@@ -108,17 +109,32 @@ def _to_frame(out, quantize: bool) -> Frame:
     return Frame(np.ascontiguousarray(rgb_t.numpy()), d, lead)
 
 
+class FrameTap(Protocol):
+    """What sees a method's frames and pairs as the scoring has them (``score_consistency(taps=...)``),
+    e.g. to encode the video (``smgs.io.flythrough``) without rendering a frame again. ``frame`` is
+    called once per frame, when it is rendered (not in order: a window of max(steps)+1 frames is
+    rendered ahead); ``pair`` once per scored pair (every step), after the warp and the mask."""
+
+    def frame(self, k: int, rgb: np.ndarray) -> None:
+        """Frame ``k`` as scored: [H, W, 3] float32 in [0, 1] (8-bit values when quantised)."""
+
+    def pair(self, i: int, j: int, warped: np.ndarray, target: np.ndarray, valid: np.ndarray) -> None:
+        """Frame ``i`` warped onto frame ``j`` ([H, W, 3]), frame ``j`` and the mask it is scored on."""
+
+
 class _FrameWindow:
     """Renders each trajectory frame once per method and keeps only the frames still needed."""
 
-    def __init__(self, render: RenderFn, cameras: Sequence[Camera], quantize: bool) -> None:
-        self.render, self.cameras, self.quantize = render, cameras, quantize
+    def __init__(self, render: RenderFn, cameras: Sequence[Camera], quantize: bool, tap: FrameTap | None = None) -> None:
+        self.render, self.cameras, self.quantize, self.tap = render, cameras, quantize, tap
         self.cache: dict[int, Frame] = {}
 
     def get(self, k: int) -> Frame:
         if k not in self.cache:
             with torch.no_grad():
                 self.cache[k] = _to_frame(self.render(self.cameras[k]), self.quantize)
+            if self.tap is not None:
+                self.tap.frame(k, self.cache[k].rgb)
         return self.cache[k]
 
     def forget_below(self, k: int) -> None:
@@ -164,6 +180,9 @@ def _score_pair(windows: dict[str, _FrameWindow], cameras: Sequence[Camera], i: 
     if ps.shared_mask:
         common = np.logical_and.reduce([valid[m] for m in names])
         valid = {m: common for m in names}
+    for m in names:
+        if windows[m].tap is not None:
+            windows[m].tap.pair(i, j, warped[m], windows[m].get(j).rgb, valid[m])
     if ps.flip_ok is True:
         for m in names:
             flips[m] = flip_error_map(windows[m].get(j).rgb, np.clip(warped[m], 0, 1), ps.ppd)
@@ -208,12 +227,13 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
                       border: int = BORDER_PX, shared_mask: bool = True,
                       flip_min_subtraction: bool = False, quantize: bool = True,
                       rel_depth_tol: float = 0.02, ppd: float = FLIP_PPD,
-                      progress: Callable[[int, int], None] | None = None
-                      ) -> dict[str, dict[int, ConsistencyScores]]:
+                      progress: Callable[[int, int], None] | None = None,
+                      taps: Mapping[str, FrameTap] | None = None) -> dict[str, dict[int, ConsistencyScores]]:
     """Scores of every method for every step: ``result[method][step]``.
 
     Each method's frames are rendered once (a sliding window keeps max(steps)+1 of them).
     ``shared_mask`` intersects the valid masks of all methods (needs >= 2 methods to matter).
+    ``taps``: per method, what also sees its frames and pairs (``FrameTap``).
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"unknown flow estimator {estimator!r}; expected one of {ESTIMATORS}")
@@ -227,7 +247,7 @@ def score_consistency(renders: Mapping[str, RenderFn], trajectory: Trajectory | 
     settings = _PairSettings(estimator, border, shared_mask, flip_min_subtraction, rel_depth_tol, ppd,
                              flip_available())
     flip_name = "flip_minsub" if flip_min_subtraction else "flip"
-    windows = {m: _FrameWindow(renders[m], cameras, quantize) for m in names}
+    windows = {m: _FrameWindow(renders[m], cameras, quantize, (taps or {}).get(m)) for m in names}
     acc: dict[str, dict[int, list[PairScore]]] = {m: {s: [] for s in steps} for m in names}
     est_params: dict[str, dict] = {}
     mask_label = "shared:" + ",".join(names) if shared_mask and len(names) > 1 else "own"
@@ -291,15 +311,16 @@ def mean_test_psnr(render: RenderFn, test_views: Sequence[tuple[Camera, torch.Te
 
 def consistency_rows(renders: Mapping[str, RenderFn], trajectory: Trajectory | Sequence[Camera], *, scene: str,
                      test_views: Sequence[tuple[Camera, torch.Tensor]] | None = None,
-                     table_step: int = 7, steps: Sequence[int] = DEFAULT_STEPS,
+                     table_step: int = TABLE_STEP, steps: Sequence[int] = DEFAULT_STEPS,
                      estimator: str = "geometric", border: int = BORDER_PX, shared_mask: bool = True,
                      flip_min_subtraction: bool = False, quantize: bool = True,
-                     progress: Callable[[int, int], None] | None = None) -> dict[str, Table4Row]:
+                     progress: Callable[[int, int], None] | None = None,
+                     taps: Mapping[str, FrameTap] | None = None) -> dict[str, Table4Row]:
     """Table 4 rows of several methods on one scene, scored on one shared mask."""
     steps = sorted(set(steps) | {table_step})
     scores = score_consistency(renders, trajectory, steps=steps, estimator=estimator, border=border,
                                shared_mask=shared_mask, flip_min_subtraction=flip_min_subtraction,
-                               quantize=quantize, progress=progress)
+                               quantize=quantize, progress=progress, taps=taps)
     if isinstance(trajectory, Trajectory):
         traj = {"n_frames": len(trajectory), "n_targets": trajectory.n_targets,
                 "n_between": trajectory.n_between, "n_dropped": len(trajectory.dropped)}
@@ -316,7 +337,8 @@ def consistency_rows(renders: Mapping[str, RenderFn], trajectory: Trajectory | S
 
 def consistency_row(render: RenderFn, trajectory: Trajectory | Sequence[Camera], *, scene: str, method: str,
                     test_views: Sequence[tuple[Camera, torch.Tensor]] | None = None,
-                    **kwargs) -> Table4Row:
+                    tap: FrameTap | None = None, **kwargs) -> Table4Row:
     """Table 4's row for one scene and one method (its own mask; see ``consistency_rows`` to
-    score several methods on a shared mask)."""
-    return consistency_rows({method: render}, trajectory, scene=scene, test_views=test_views, **kwargs)[method]
+    score several methods on a shared mask). ``tap``: what also sees its frames (``FrameTap``)."""
+    return consistency_rows({method: render}, trajectory, scene=scene, test_views=test_views,
+                            taps={method: tap} if tap is not None else None, **kwargs)[method]
