@@ -10,7 +10,18 @@ import os
 # point is); a value the user set is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from smgs.camera import Camera
-from smgs.raster import MODES, RenderOutput, rasterize, rasterize_splats
 from smgs.version import __version__
+
+# The renderer's names load on first use (PEP 562), so that `import smgs.x` for a light module (the
+# command line's `--help` and `smgs list`) does not import torch.
+_LAZY = {"Camera": "smgs.camera", "rasterize": "smgs.raster", "rasterize_splats": "smgs.raster",
+         "RenderOutput": "smgs.raster", "MODES": "smgs.raster"}
 __all__ = ["Camera", "rasterize", "rasterize_splats", "RenderOutput", "MODES", "__version__"]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'smgs' has no attribute {name!r}")

@@ -21,20 +21,14 @@ class Command:
 
 
 def _run(args: list[str]) -> int:
+    if "-h" in args or "--help" in args:   # answered without importing the runner (Hydra, torch)
+        from protocols.run_help import run_help
+
+        print(run_help())
+        return 0
     from protocols.run import cli
 
-    return _with_argv("smgs run", args, cli)
-
-
-def _with_argv(prog: str, args: list[str], fn: Callable[[], object]) -> int:
-    """Call a program that reads ``sys.argv`` itself (Hydra's), with ``args`` as its arguments."""
-    saved = sys.argv
-    sys.argv = [prog, *args]
-    try:
-        fn()
-    finally:
-        sys.argv = saved
-    return 0
+    return cli(args)
 
 
 def _report(args: list[str]) -> int:
