@@ -93,5 +93,8 @@ def test_the_report_marks_the_pretrained_row(runs):
     ply = _run(runs, "3dgs") / "point_cloud.ply"
     assert evaluate_ply.main([str(ply), f"out_dir={runs}", "report=false", *SCENE]) == 0
     md = build_report(runs, stability="skipped in this test").read_text()
-    assert "3D GS (pretrained)" in md and "trained elsewhere, read from a PLY" in md
+    assert "3D GS (pretrained)" in md and "models read from a PLY (another tool's, or a run's own, exported)" in md
+    assert "trained elsewhere" not in md   # the PLY here is this harness's own export
+    # the preset's footnote names the trained runs' length, not the evaluation config's 3000 beside it
+    assert "[cpu] = the cpu preset (4 steps, images ≤ 400 px wide)" in md and "3000 steps" not in md
     assert json.loads((_run(runs, "3dgs", "pretrained") / "results.json").read_text())["source"]["sha256"]
