@@ -20,8 +20,12 @@ class Command:
     run: Callable[[list[str]], int]
 
 
+def _asks_help(args: list[str]) -> bool:
+    return "-h" in args or "--help" in args
+
+
 def _run(args: list[str]) -> int:
-    if "-h" in args or "--help" in args:   # answered without importing the runner (Hydra, torch)
+    if _asks_help(args):   # answered without importing the runner (Hydra, torch)
         from protocols.run_help import run_help
 
         print(run_help())
@@ -32,6 +36,11 @@ def _run(args: list[str]) -> int:
 
 
 def _report(args: list[str]) -> int:
+    if _asks_help(args):   # from the parser alone: the report's modules import matplotlib and torch
+        from reports.commands import build_parser
+
+        build_parser().print_help()
+        return 0
     from reports.build import main
 
     return main(args)
@@ -50,6 +59,11 @@ def _export(args: list[str]) -> int:
 
 
 def _popping(args: list[str]) -> int:
+    if _asks_help(args):
+        from reports.commands import popping_parser
+
+        popping_parser().print_help()
+        return 0
     from reports.popping import main
 
     return main(args)

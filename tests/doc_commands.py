@@ -42,7 +42,8 @@ random initial points for a scene without SfM points (fox): seconds per run inst
 TRAINS = ("run", "evaluate")   # the smgs commands that get SHORT
 PHASES = {"run": 0, "evaluate": 0, "rm": 2}
 """When a command runs, by its verb: those that make runs first, those that remove them last; every
-other command (export, report, ...) in between, in the order of the pages."""
+other command (export, report, ...) in between, in the order of the pages. A command never runs
+before one above it in its block (``rm`` then ``smgs report``: the report without them)."""
 SMOKE_CELL = "runs/smoke/procedural/blocks/3dgs/full/seed0"
 
 
@@ -52,6 +53,7 @@ class DocCommand:
     line: int
     text: str            # the command as written, without its comment, whitespace collapsed
     env: tuple[tuple[str, str], ...] = ()   # what an ``export`` earlier in its block set
+    block: int = 0       # the line its block starts at
 
     @property
     def where(self) -> str:
@@ -94,7 +96,7 @@ def collect() -> list[DocCommand]:
                     continue
                 joined += line
                 for seg in _segments(joined):
-                    out.append(DocCommand(str(page.relative_to(REPO)), start, seg, tuple(env.items())))
+                    out.append(DocCommand(str(page.relative_to(REPO)), start, seg, tuple(env.items()), first))
                     m = re.fullmatch(r"export (\w+)=(\S+)", seg)
                     if m:
                         env[m.group(1)] = m.group(2)
@@ -163,6 +165,16 @@ def plan(cmd: DocCommand, work: Path) -> list[Job]:
     if argv[0] in TRAINS:
         argv = [argv[0], *[a for a in argv[1:] if not _is_short(a)], *SHORT]
     return jobs + [Job(argv, env=env)]
+
+
+def order(commands: list[DocCommand]) -> list[DocCommand]:
+    """``commands`` in the order they run (``PHASES``), the pages' order within a phase."""
+    phases, reached = [], {}
+    for c in commands:
+        key = (c.page, c.block)
+        reached[key] = max(reached.get(key, 0), phase(c))
+        phases.append(reached[key])
+    return [c for _, _, c in sorted(zip(phases, range(len(commands)), commands), key=lambda x: x[:2])]
 
 
 def phase(cmd: DocCommand) -> int:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from doc_commands import REPO, SCENES, DocCommand, collect, module_commands, phase, plan
+from doc_commands import REPO, SCENES, SHORT, DocCommand, collect, module_commands, order, plan
 
 CANNOT_RUN: dict[str, str] = {
     # installing: the environment these tests run in is installed by CI's own install step (.ci/run)
@@ -94,15 +94,10 @@ def _missing_fixture(cmd: DocCommand) -> str | None:
 def ran(tmp_path_factory) -> dict[str, tuple[int | None, Path | None]]:
     """Every runnable command's exit status and log, by its place (``page:line text``)."""
     work = tmp_path_factory.mktemp("docs")
-    blocks_phase: dict[tuple[str, int], int] = {}
-    order = []
-    for i, c in enumerate(RUNNABLE):
-        order.append((phase(c), i, c))
-    order.sort(key=lambda x: (x[0], x[1]))
     jobs: list[dict] = []
     index: dict[str, int] = {}
     job_of: dict[str, int | None] = {}
-    for _, _, c in order:
+    for c in order(RUNNABLE):
         if _missing_fixture(c):
             job_of[f"{c.where} {c.text}"] = None
             continue
@@ -146,3 +141,9 @@ def test_the_pages_have_commands_and_the_collection_reads_them_as_written():
     continued = [c for c in COMMANDS if c.text.startswith("smgs run +experiment=full executor.kind=slurm")
                  or "executor.kind=slurm" in c.text]
     assert continued and all("\\" not in c.text and "#" not in c.text for c in COMMANDS)
+
+
+def test_the_short_run_appended_is_the_one_the_docs_state():
+    """docs/usage.md ("Short runs") says what these runs append; it must be what they append."""
+    usage = " ".join((REPO / "docs" / "usage.md").read_text().replace("`", "").split())
+    assert " ".join(SHORT) in usage

@@ -64,3 +64,30 @@ def test_hydras_own_errors_are_refusals_too(capsys):
     err = capsys.readouterr().err
     assert e.value.code == 2 and "Could not find 'experiment/nope'" in err and "budget5" in err
     assert "Traceback" not in err and "HYDRA_FULL_ERROR" not in err
+
+
+# ---- answers at once ------------------------------------------------------------------------------
+
+CPU_SECONDS = 1.0   # what a simple question may cost in CPU time (torch's import alone is about 1.1 s here)
+QUICK = [["list", "budgets"], ["list", "experiments"], ["list", "protocols"], ["list", "datasets"], ["list", "methods"],
+         ["--help"]] + [[name, "--help"] for name in ("run", "report", "evaluate", "export", "list", "bench", "popping",
+                                                      "lpips-weights", "download")]
+
+
+def cpu_seconds_of(args: list[str]) -> float:
+    """The CPU time (user + system, not the wall clock: a loaded machine stretches that) a child
+    process running ``smgs ARGS`` takes, and that it exits 0."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    p = subprocess.run([sys.executable, "-m", "smgs_cli", *args], cwd=REPO, capture_output=True, text=True, timeout=300)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert p.returncode == 0 and p.stdout.strip(), p.stderr
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+@pytest.mark.parametrize("args", QUICK, ids=" ".join)
+def test_a_simple_question_answers_in_well_under_a_second_of_cpu_time(args):
+    """``smgs list budgets`` took 10 s and ``smgs report --help`` 15 s on a loaded machine: they
+    imported torch, Hydra and the renderer to print a list or a usage text."""
+    assert cpu_seconds_of(args) < CPU_SECONDS, args

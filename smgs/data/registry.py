@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from smgs.data.datasets import DatasetSpec
 from smgs.data.formats import SceneFormat, SceneRequest, check_scene_with, format_fields, make_scene
-from smgs.data.scene import Scene
 from smgs.plugins import Registry
 from smgs.spelling import did_you_mean
+
+if TYPE_CHECKING:   # a type only: importing the scene (torch) is left to the loaders
+    from smgs.data.scene import Scene
 
 ENTRY_POINT_GROUP = "smgs.datasets"
 
