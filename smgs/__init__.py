@@ -10,18 +10,11 @@ import os
 # point is); a value the user set is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from smgs.lazy import lazy_names
 from smgs.version import __version__
 
-# The renderer's names load on first use (PEP 562), so that `import smgs.x` for a light module (the
-# command line's `--help` and `smgs list`) does not import torch.
-_LAZY = {"Camera": "smgs.camera", "rasterize": "smgs.raster", "rasterize_splats": "smgs.raster",
-         "RenderOutput": "smgs.raster", "MODES": "smgs.raster"}
+# The renderer's names load on first use, so that `import smgs.x` for a light module (the command
+# line's `--help` and `smgs list`) does not import torch.
+__getattr__ = lazy_names("smgs", {"Camera": "camera", "rasterize": "raster", "rasterize_splats": "raster",
+                                  "RenderOutput": "raster", "MODES": "raster"})
 __all__ = ["Camera", "rasterize", "rasterize_splats", "RenderOutput", "MODES", "__version__"]
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'smgs' has no attribute {name!r}")

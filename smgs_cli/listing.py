@@ -37,15 +37,16 @@ def method_entries() -> list[tuple[str, str]]:
 
 
 def strategy_entries() -> list[tuple[str, str]]:
-    """The densification strategies: a built-in's first sentence of its class's doc (importing it), a
-    plugin's distribution (not imported)."""
-    from smgs.train.strategies.registry import BUILTINS, list_strategies, plugin_source, strategy_class
+    """The densification strategies: a built-in's first sentence of its class's doc (read from its
+    source, not imported), a plugin's distribution (not imported)."""
+    from smgs.plugins import target_doc
+    from smgs.train.strategies.registry import BUILTINS, list_strategies, plugin_source
 
     out = []
     for name in list_strategies():
         pick = f"+method.train.densify.strategy={name}"
         if name in BUILTINS:
-            about = sentences(" ".join((strategy_class(name).__doc__ or "").split()))[0]
+            about = sentences(" ".join(target_doc(BUILTINS[name]).split()))[0]
             out.append((name, f"{about} ({pick})"))
         else:
             out.append((name, f"a densification strategy from a plugin: {pick} ({plugin_source(name) or 'registered'})"))

@@ -69,9 +69,9 @@ def test_hydras_own_errors_are_refusals_too(capsys):
 # ---- answers at once ------------------------------------------------------------------------------
 
 CPU_SECONDS = 1.0   # what a simple question may cost in CPU time (torch's import alone is about 1.1 s here)
-QUICK = [["list", "budgets"], ["list", "experiments"], ["list", "protocols"], ["list", "datasets"], ["list", "methods"],
-         ["--help"]] + [[name, "--help"] for name in ("run", "report", "evaluate", "export", "list", "bench", "popping",
-                                                      "lpips-weights", "download")]
+LISTS = ("budgets", "experiments", "protocols", "datasets", "methods", "strategies", "renderers")
+COMMANDS = ("run", "report", "evaluate", "export", "list", "bench", "popping", "lpips-weights", "download")
+QUICK = [["list", what] for what in LISTS] + [["--help"]] + [[name, "--help"] for name in COMMANDS]
 
 
 def cpu_seconds_of(args: list[str]) -> float:

@@ -23,14 +23,14 @@ LAYERS = ("smgs", "baselines", "protocols", "reports", "smgs_cli")  # each may i
 
 # Inside smgs, each group may import its own and those before it: plain helpers that import no other
 # smgs module (version, env, atomic writes, the device setting, the camera, a setting's ranges, the
-# nearest spelling of a key, what
+# nearest spelling of a key, a package's names on first use, what
 # the plug-in registries share), then the renderer, the
 # scenes, the metrics, training, model files (the PLY and its mapping onto the trainer), and the
 # package's front (smgs/__init__.py, the demo). A dotted name covers its package and submodules;
 # "smgs" is the package's own __init__ only. A module in no group is reported, to be placed.
 SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
     ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera", "smgs.ranges", "smgs.plugins",
-     "smgs.spelling"),
+     "smgs.spelling", "smgs.lazy"),
     ("smgs.raster",),
     ("smgs.data",),
     ("smgs.metrics",),
