@@ -82,11 +82,36 @@ COMMANDS = collect()
 RUNNABLE = [c for c in COMMANDS if canonical(c.text) not in CANNOT_RUN and not is_environment(c)]
 
 
-def _missing_fixture(cmd: DocCommand) -> str | None:
+def _fixture_absent(cmd: DocCommand) -> str | None:
     kind = re.search(r"\bdataset=(\w+)", cmd.text)
     needs = SCENES.get(kind.group(1)) if kind and "dataset.path=" in cmd.text else None
     if needs is not None and not needs.is_dir():
         return f"fixture {needs} absent (CI keeps ../shared beside the checkout)"
+    return None
+
+
+def _writes(cmd: DocCommand) -> str | None:
+    """The runs folder a training command writes (``runs/<experiment_name>``), None for another."""
+    text = canonical(cmd.text)
+    if not text.startswith(("smgs run ", "smgs evaluate ")) or "out_dir=" in text:
+        return None
+    name = re.search(r"(?:\+experiment|experiment_name)=(\w+)", text)
+    return f"runs/{name.group(1) if name else 'default'}"
+
+
+def _missing_fixture(cmd: DocCommand) -> str | None:
+    """Why ``cmd`` cannot run without the fixture scenes: it reads one, or it reads the runs folder
+    that only commands reading one write."""
+    absent = _fixture_absent(cmd)
+    if absent:
+        return absent
+    folder = next((t for t in cmd.text.split() if t.startswith("runs/")), None)
+    if folder is None:
+        return None
+    folder = "/".join(folder.split("/")[:2])
+    writers = [c for c in RUNNABLE if _writes(c) == folder]
+    if writers and all(_fixture_absent(c) for c in writers):
+        return f"{folder} comes from `{writers[0].text}`: {_fixture_absent(writers[0])}"
     return None
 
 
@@ -123,7 +148,8 @@ def test_a_documented_command_runs_as_written(cmd, ran):
         pytest.skip(missing)
     rc, log = ran[f"{cmd.where} {cmd.text}"]
     tail = log.read_text()[-3000:] if log is not None and log.exists() else "(no log: the run stopped before it)"
-    assert rc == 0, f"{cmd.where}: `{cmd.text}` exited {rc}:\n{tail}"
+    assert rc == 0, (f"{cmd.where}: `{cmd.text}` exited {rc}:\n{tail}\n(a command that cannot run here: one line in "
+                     f"CANNOT_RUN, {canonical(cmd.text)!r}: \"why\")")
 
 
 def test_every_command_that_cannot_run_here_is_still_documented_and_says_why():

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from protocols.config_files import config_names
-from smgs_cli.main import main
+from smgs_cli.listing import LISTED
+from smgs_cli.main import COMMANDS, main
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -69,9 +70,7 @@ def test_hydras_own_errors_are_refusals_too(capsys):
 # ---- answers at once ------------------------------------------------------------------------------
 
 CPU_SECONDS = 1.0   # what a simple question may cost in CPU time (torch's import alone is about 1.1 s here)
-LISTS = ("budgets", "experiments", "protocols", "datasets", "methods", "strategies", "renderers")
-COMMANDS = ("run", "report", "evaluate", "export", "list", "bench", "popping", "lpips-weights", "download")
-QUICK = [["list", what] for what in LISTS] + [["--help"]] + [[name, "--help"] for name in COMMANDS]
+QUICK = [["list", what] for what in LISTED] + [["--help"]] + [[c.name, "--help"] for c in COMMANDS]   # new ones too
 
 
 def cpu_seconds_of(args: list[str]) -> float:
