@@ -31,13 +31,14 @@ import dataclasses
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
-import torch
+if TYPE_CHECKING:   # types only: naming a method (smgs list methods) imports no torch
+    import torch
 
-from smgs.camera import Camera
-from smgs.data.scene import Scene
-from smgs.raster import RenderOutput
+    from smgs.camera import Camera
+    from smgs.data.scene import Scene
+    from smgs.raster import RenderOutput
 
 CAPABILITIES: tuple[str, ...] = ("sfm_points", "background", "trajectory", "view_dependence")
 """Scene capabilities a method can ask for (``Scene.capabilities``)."""

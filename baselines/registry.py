@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import inspect
 from importlib import metadata
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, Resolved, RunSettings, SceneNeeds, merge_config
-from smgs.data.scene import Scene
-from smgs.device import as_device
 from smgs.plugins import entry_points, load_target, source_of
+
+if TYPE_CHECKING:   # types only: listing the methods imports no torch
+    import torch
+
+    from smgs.data.scene import Scene
 
 ENTRY_POINT_GROUP = "smgs.methods"
 
@@ -140,6 +141,8 @@ def create_method(name: str, scene: Scene, config: dict[str, Any] | None = None,
     elif config is not None or run is not None or resolved.name != name:
         raise ValueError(f"create_method({name!r}): give config and run, or the settings resolved for this "
                          f"method (resolved= of {resolved.name!r}), not both")
+    from smgs.device import as_device
+
     dev = as_device(device)
     cls = method_class(name)
     for keyword, why in (("device", "creates its tensors on that device"),

@@ -51,12 +51,14 @@ budget is pretrained. docs/ply.md has the details."""
 
 
 def evaluation_config(ply: Path, overrides: list[str]) -> dict:
-    """The resolved cell config that evaluates ``ply`` (Hydra composed from configs/)."""
-    from hydra import compose, initialize_config_dir
+    """The resolved cell config that evaluates ``ply`` (Hydra composed from configs/). The scene is
+    ``scene=``, else the dataset's one scene, named as ``smgs run`` names it (a folder given by
+    ``dataset.path`` is its one scene, named after it); a dataset of several needs ``scene=``."""
+    from hydra import initialize_config_dir
     from omegaconf import OmegaConf
 
     from protocols.ply import read_scored_ply, sha256
-    from protocols.run import CONFIG_DIR, _method_overrides
+    from protocols.run import CONFIG_DIR, _method_overrides, _scenes_of, compose_checked
 
     mode = read_scored_ply(ply).mode   # bad input stops here, before anything is composed or written
     for o in overrides:
@@ -68,14 +70,13 @@ def evaluation_config(ply: Path, overrides: list[str]) -> dict:
     fixed = [o for o in overrides if not o.startswith(("method=", "method.name="))]
     fixed += _method_overrides(mode) + [f"budget={BUDGET}"]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = OmegaConf.to_container(compose(config_name="config", overrides=fixed), resolve=True)
+        cfg = OmegaConf.to_container(compose_checked(fixed), resolve=True)
         if cfg.get("scene") is None:
-            scenes = [str(s) for s in cfg["dataset"].get("scenes") or []]
+            scenes = _scenes_of(str(cfg["dataset"]["name"]), fixed)
             if len(scenes) != 1:
-                raise ValueError(f"dataset {cfg['dataset']['name']!r} has scenes {scenes}: name the one the model "
-                                 "shows with scene=NAME")
-            cfg = OmegaConf.to_container(compose(config_name="config", overrides=fixed + [f"scene={scenes[0]}"]),
-                                         resolve=True)
+                raise ValueError(f"dataset {cfg['dataset']['name']!r} holds {len(scenes)} scenes ({', '.join(scenes)}): "
+                                 "name the one the model shows with scene=NAME")
+            cfg = OmegaConf.to_container(compose_checked(fixed + [f"scene={scenes[0]}"]), resolve=True)
     cfg["ply"] = {"path": str(ply.resolve()), "sha256": sha256(ply)}
     return cfg
 
@@ -120,11 +121,16 @@ def main(argv: list[str] | None = None) -> int:
         what = "no model given" if not plys else f"one model at a time, got {len(plys)}: {' '.join(plys)}"
         print(f"{USAGE}\n\nerror: {what}", file=sys.stderr)
         return 2
+    from protocols.refused import EXIT_REFUSED, Refused
+
     try:
         s = evaluate_ply(plys[0], [a for a in argv if not is_ply_argument(a)])
-    except (OSError, ValueError) as e:
+    except Refused as e:
+        print(f"error: {e.message}", file=sys.stderr)
+        return EXIT_REFUSED
+    except (OSError, ValueError) as e:   # the model, the scene or a setting: nothing was run
         print(f"error: {e}", file=sys.stderr)
-        return 1
+        return EXIT_REFUSED
     if s["status"] != "ok":
         print(f"error: {s['key']}: {s['status']}: {s.get('error')}", file=sys.stderr)
         return 1

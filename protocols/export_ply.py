@@ -12,14 +12,14 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocols.ply import export_run
-
     ap = argparse.ArgumentParser(prog="python -m protocols.export_ply", description=__doc__.splitlines()[0])
     ap.add_argument("run_dirs", type=Path, nargs="+", help="run directories (with checkpoint.json)")
-    ap.add_argument("--out", type=Path, default=None, help="output file (one run directory only)")
+    ap.add_argument("--out", type=Path, default=None, help="output file (one run directory only; default: RUN_DIR/point_cloud.ply)")
     args = ap.parse_args(argv)
     if args.out is not None and len(args.run_dirs) > 1:
         ap.error("--out names one file; give one run directory with it")
+    from protocols.ply import export_run   # after the arguments: --help answers without torch
+
     failed = 0
     for run_dir in args.run_dirs:
         try:

@@ -3,7 +3,7 @@
 ``k_max``, ``k_max_scope``, ``eq15`` and the hyperparameter set (``optim``) are defaults of
 ``smgs.train.config.TrainConfig``. Each configs/method/*.yaml of a built-in method takes them from
 the Hydra config group ``method/train`` option ``splatting``, which is made here from those
-defaults (Hydra's ConfigStore), not restated: the composed config, ``smgs run --help`` and
+defaults (Hydra's ConfigStore), not restated: the composed config (``smgs run --cfg job``) and
 config.yaml still show the user what they can override (``method.train.k_max=64``), and a default
 changed in the code shows there too.
 """

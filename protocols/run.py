@@ -12,6 +12,8 @@ import json
 import logging
 import signal
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -19,20 +21,17 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from protocols.executors import Terminated, on_sigterm
+from protocols.config_files import CONFIG_DIR, config_names, has_config
 from protocols.grid import Cell, check_path_names, expand, path_name_problem
+from protocols.grid_axes import given as _given, grid_datasets, grid_seeds, one_or_list
 from protocols.method_defaults import register as register_method_defaults
+from protocols.refused import EXIT_REFUSED, Refused
 
 log = logging.getLogger("smgs.protocols")
 
 
-CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 register_method_defaults()   # the built-in methods' configs take the trainer's defaults from the code (Hydra's store)
 GRID_KEYS = ("method=", "dataset=", "budget=", "seed=", "seeds=", "scene=", "method.name=")
-
-
-def has_config(group: str, name: str) -> bool:
-    """Whether configs/<group>/<name>.yaml exists (a method, dataset or budget with a file of its own)."""
-    return (Path(CONFIG_DIR) / group / f"{name}.yaml").exists()
 
 
 def _method_overrides(method: str) -> list[str]:
@@ -61,12 +60,8 @@ def _budget_group(budget: str, overrides: list[str]) -> str:
     base = _given(overrides, "budget")
     if base is not None and _given(overrides, "budget.name") == budget:
         return base
-    raise ValueError(f"budget {budget!r} (grid.budgets) is no file in configs/budget/ ({', '.join(_budget_names())}); "
+    raise ValueError(f"budget {budget!r} (grid.budgets) is no file in configs/budget/ ({', '.join(config_names('budget'))}); "
                      f"to make one, start from a file and name it: budget=cap4 budget.cap=N budget.name={budget}")
-
-
-def _budget_names() -> list[str]:
-    return sorted(p.stem for p in (Path(CONFIG_DIR) / "budget").glob("*.yaml"))
 
 
 def _cell_config(cell: Cell, overrides: list[str]) -> dict:
@@ -98,57 +93,6 @@ def _scenes_of(dataset: str, overrides: list[str]) -> list[str]:
         raise ValueError(f"dataset {dataset!r} needs the scene's folder: add dataset.path=/path/to/scene "
                          f"(configs/dataset/{dataset}.yaml lists no scenes of its own)")
     return [str(s) for s in scenes]
-
-
-def _given(overrides: list[str], key: str) -> str | None:
-    """The value the command line gives ``key`` (``key=V``, ``+key=V`` or ``++key=V``; the last)."""
-    value = None
-    for o in overrides:
-        k, sep, v = o.lstrip("+").partition("=")
-        if sep and k == key:
-            value = v
-    return value
-
-
-def _seed_given(cfg: DictConfig, overrides: list[str]) -> list[int] | None:
-    """``seed=N`` on the command line: [N], also under an experiment whose ``grid.seeds`` (or
-    ``grid.seeds_of``) lists other seeds, which it replaces (and says so); None when not given.
-    Given with ``seeds=M`` or with a ``grid.seeds`` that is not [N], the sweep stops naming both."""
-    given = _given(overrides, "seed")
-    if given is None:
-        return None
-    try:
-        n = int(given)
-    except ValueError:
-        raise SystemExit(f"invalid config, nothing was run: seed={given!r} is not an integer") from None
-    if cfg.get("seeds") is not None:
-        raise SystemExit(f"invalid config, nothing was run: seed={given} and seeds={cfg.get('seeds')} disagree; give "
-                         "seed=N to run one seed, or seeds=M to run seeds 0 … M-1")
-    listed = [str(x) for x in cfg.grid.seeds]
-    if _given(overrides, "grid.seeds") is not None and listed != [str(n)]:
-        raise SystemExit(f"invalid config, nothing was run: seed={given} and grid.seeds=[{', '.join(listed)}] "
-                         "disagree; give seed=N to run one seed, or grid.seeds=[...] to run several")
-    seeds_of = cfg.grid.get("seeds_of") or {}
-    if listed != [str(n)] or seeds_of:
-        print(f"seed={n}: running seed {n} (instead of the experiment's grid.seeds [{', '.join(listed)}]"
-              + (f" and grid.seeds_of {OmegaConf.to_container(seeds_of)}" if seeds_of else "") + ")", flush=True)
-    return [n]
-
-
-def grid_datasets(cfg: DictConfig, overrides: list[str]) -> tuple[list[str], list[str] | None]:
-    """The grid's datasets and scene filter. ``dataset=Y`` on the command line runs the experiment's
-    grid (methods, budgets, seeds) on Y alone, with Y's own scenes (a folder given by dataset.path is
-    its one scene), unless ``grid.datasets=`` / ``grid.scenes=`` are given too."""
-    grid = cfg.grid
-    datasets = [str(d) for d in grid.datasets]
-    scenes = None if grid.scenes is None else [str(s) for s in grid.scenes]
-    chosen = _given(overrides, "dataset")
-    if chosen is not None:
-        if _given(overrides, "grid.datasets") is None:
-            datasets = [chosen]
-        if _given(overrides, "grid.scenes") is None:
-            scenes = None
-    return datasets, scenes
 
 
 def check_command_line(args: list[str]) -> str | None:
@@ -185,7 +129,7 @@ def unknown_dataset(name: str) -> str:
     if name in list_names():
         return (f"dataset={name} is a plugin scene format or dataset without a file in configs/dataset/: run it "
                 f"with grid.datasets=[{name}] (its settings as +dataset.KEY=VALUE)")
-    files = sorted(p.stem for p in (Path(CONFIG_DIR) / "dataset").glob("*.yaml") if p.stem != "plugin")
+    files = [n for n in config_names("dataset") if n != "plugin"]
     return f"dataset={name} is no dataset; known: {', '.join(files)} (and the scene formats {', '.join(list_names())})"
 
 
@@ -200,14 +144,14 @@ def plan(cfg: DictConfig, overrides: list[str]) -> tuple[list[Cell], list[dict]]
         cells = grid_cells(cfg, overrides)
         check_path_names(str(cfg.experiment_name), cells)
     except ValueError as e:
-        raise SystemExit(f"invalid config, nothing was run: {e}") from None
+        raise Refused(f"invalid config, nothing was run: {e}") from None
     out = Path(cfg.out_dir)
     payloads = []
     for c in cells:
         try:
             ccfg = _cell_config(c, overrides)
         except ValueError as e:   # ours (a budget with no file); Hydra's own errors keep their words
-            raise SystemExit(f"invalid config, nothing was run: {e}") from None
+            raise Refused(f"invalid config, nothing was run: {e}") from None
         payloads.append({"key": c.key, "run_dir": str(out / c.key), "config": ccfg, "settings": cell_settings(ccfg)})
     return cells, payloads
 
@@ -225,33 +169,16 @@ def grid_cells(cfg: DictConfig, overrides: list[str]) -> list[Cell]:
             get_spec(str(m))
         except KeyError:
             raise ValueError(unknown_method(str(m), "grid.methods")) from None
+    methods = one_or_list(cfg, overrides, "methods", "method", str(cfg.method.name))
+    budgets = one_or_list(cfg, overrides, "budgets", "budget", str(cfg.budget.name))
     names, scenes = grid_datasets(cfg, overrides)
     datasets = {d: _scenes_of(d, overrides) for d in names}
     seeds, seeds_of = grid_seeds(cfg, overrides)
-    unseeded = [str(m) for m in grid.methods if not seeds_of.get(str(m), seeds)]
+    unseeded = [m for m in methods if not seeds_of.get(m, seeds)]
     if unseeded:
         raise ValueError(f"no seed to run for {', '.join(unseeded)}: grid.seeds is empty; list at least one "
                          "(grid.seeds=[0]) or give seeds=N")
-    return expand([str(m) for m in grid.methods], datasets, [str(b) for b in grid.budgets], seeds, scenes, seeds_of)
-
-
-def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], dict[str, list[int]]]:
-    """The grid's seeds and per-method exceptions: ``seed=N`` on the command line runs seed N
-    (``_seed_given``, docs/runs.md); ``seeds=N`` runs seeds 0 … N−1 of every method; otherwise
-    ``grid.seeds``, with ``grid.seeds_of`` (method -> seeds) for the methods it names
-    (docs/reports.md, "Running N seeds")."""
-    one = _seed_given(cfg, list(overrides))
-    if one is not None:
-        return one, {}
-    n = cfg.get("seeds")
-    if n is not None:
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"seeds={n!r}: give the number of seeds, a whole number ≥ 1 (seeds=3 runs seeds 0, 1, "
-                             "2; for a list of seed numbers use grid.seeds=[...])")
-        return list(range(n)), {}
-    seeds_of = cfg.grid.get("seeds_of") or {}
-    return ([int(s) for s in cfg.grid.seeds],
-            {str(m): [int(s) for s in v] for m, v in OmegaConf.to_container(seeds_of).items()} if seeds_of else {})
+    return expand(methods, datasets, budgets, seeds, scenes, seeds_of)
 
 
 def _preflight(payloads: list[dict]) -> None:
@@ -280,9 +207,9 @@ def _preflight(payloads: list[dict]) -> None:
         if problem and problem not in broken:
             broken.append(problem)
     if broken:
-        raise SystemExit("invalid scene, nothing was run:\n  " + "\n  ".join(broken))
+        raise Refused("invalid scene, nothing was run:\n  " + "\n  ".join(broken))
     if missing:
-        raise SystemExit(missing_data_message(list(dict.fromkeys(missing.values())), len(missing) == len(seen)))
+        raise Refused(missing_data_message(list(dict.fromkeys(missing.values())), len(missing) == len(seen)))
 
 
 def missing_data_message(problems: list[str], all_missing: bool) -> str:
@@ -319,15 +246,22 @@ def check_devices(payloads: list[dict], executor: str) -> None:
             if str(e) not in problems:
                 problems.append(str(e))
     if problems:
-        raise SystemExit("device: " + "\n  ".join(problems))
+        raise Refused("device: " + "\n  ".join(problems))
 
 
-def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
-    from protocols.cell import run_cell
-    from protocols.executors import execute
-    from protocols.progress import cell_status
+@dataclass(frozen=True)
+class Prepared:
+    """An experiment checked and ready to run: its config, cells and their payloads."""
 
-    from protocols.validate import schedule_warning, validate_payloads
+    cfg: DictConfig
+    cells: list[Cell]
+    payloads: list[dict]
+
+
+def prepare(cfg: DictConfig, overrides: list[str]) -> Prepared:
+    """The grid planned and every check done (its settings, devices, scenes and data), before
+    anything runs or is written; a ``Refused`` names what stops it."""
+    from protocols.validate import validate_payloads
 
     cells, payloads = plan(cfg, overrides)
     if cfg.report:
@@ -336,10 +270,22 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
         try:
             builder(cfg.get("report_builder"))   # a report_builder that names no function stops here
         except ValueError as e:
-            raise SystemExit(f"invalid config, nothing was run: {e}") from None
+            raise Refused(f"invalid config, nothing was run: {e}") from None
     check_devices(payloads, str(cfg.executor.kind))
     validate_payloads(payloads)
     _preflight(payloads)
+    return Prepared(cfg, cells, payloads)
+
+
+def run_prepared(prepared: Prepared) -> list[dict]:
+    """Run the prepared cells with the chosen executor, then build the report."""
+    from protocols.cell import run_cell
+    from protocols.executors import execute
+    from protocols.progress import cell_status
+
+    from protocols.validate import schedule_warning
+
+    cfg, cells, payloads = prepared.cfg, prepared.cells, prepared.payloads
     for warning in dict.fromkeys(w for w in (schedule_warning(p["config"], p["settings"]) for p in payloads) if w):
         print(f"warning: {warning}", flush=True)
     ex = cfg.executor
@@ -364,13 +310,38 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
     return summaries
 
 
+def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
+    return run_prepared(prepare(cfg, overrides))
+
+
+def compose_checked(overrides: list[str]) -> DictConfig:
+    """The config of ``overrides`` (Hydra initialised), after refusing every key that nothing would
+    read (``protocols.known_keys``); Hydra's own refusals come as ``Refused`` too."""
+    from hydra import compose
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from protocols.known_keys import group_choices, unread_keys
+
+    try:
+        base = compose(config_name="config", overrides=group_choices(overrides))
+        problems = unread_keys(OmegaConf.to_container(base, resolve=False), overrides)
+        if problems:
+            raise Refused("invalid config, nothing was run:\n  " + "\n  ".join(problems))
+        return compose(config_name="config", overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as e:
+        words = " ".join(str(e).split("Config search path")[0].split())
+        raise Refused(f"invalid config, nothing was run: {words}") from None
+
+
 def run_experiment(overrides: list[str]) -> list[dict]:
     """Run an experiment from Hydra overrides (e.g. ["+experiment=smoke", "protocol.steps=50"])
     without the command line: for tests and notebooks."""
-    from hydra import compose, initialize_config_dir
+    from hydra import initialize_config_dir
 
+    overrides = list(overrides)
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        return _run(compose(config_name="config", overrides=overrides), list(overrides))
+        return _run(compose_checked(overrides), overrides)
 
 
 def failure_message(summaries: list[dict]) -> str | None:
@@ -379,43 +350,94 @@ def failure_message(summaries: list[dict]) -> str | None:
     return f"{failed} of {len(summaries)} run(s) failed (their errors are listed above)" if failed else None
 
 
-@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")  # absolute: also when imported by the smgs command
-def main(cfg: DictConfig) -> None:
+def _finish(summaries_of: Callable[[], list[dict]]) -> None:
+    """Run, and stop with status 1 where a run or the report failed (a script or CI job driving the
+    harness must see it)."""
     from protocols.report_step import ReportFailed
 
     try:
-        summaries = _run(cfg, list(HydraConfig.get().overrides.task))
+        summaries = summaries_of()
     except ReportFailed as e:   # the runs are recorded; the builder's error is in the message
         print(f"error: {e}", file=sys.stderr, flush=True)
         raise SystemExit(1) from None
     message = failure_message(summaries)
-    if message:  # a script or CI job driving the harness must see it
+    if message:
         print(f"error: {message}", file=sys.stderr, flush=True)
         raise SystemExit(1)
 
 
-def cli() -> None:
-    # `--force` is accepted as a flag as well as the Hydra override force=true
-    if "--force" in sys.argv:
-        sys.argv = [a for a in sys.argv if a != "--force"] + ["force=true"]
-    name = _given(sys.argv[1:], "experiment_name")   # before Hydra makes ${out_dir}/_hydra from it
+@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")  # absolute: also when imported by the smgs command
+def main(cfg: DictConfig) -> None:
+    """The whole run under Hydra's own command line (what ``cli`` hands Hydra's flags to)."""
+    overrides = list(HydraConfig.get().overrides.task)
+    _finish(lambda: _run(cfg, overrides))
+
+
+def _under_hydra(args: list[str], task: Callable[[], None] | None) -> None:
+    """Hydra's main with ``args`` as its command line: its logging (stdout and <out_dir>/_hydra/run.log)
+    around ``task``, or, for ``task`` None, the whole run (``main``)."""
+    saved = sys.argv
+    sys.argv = ["smgs run", *args]
+    try:
+        if task is None:
+            main()
+        else:
+            hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")(lambda _cfg: task())()
+    finally:
+        sys.argv = saved
+
+
+def _refusal(args: list[str]) -> str | None:
+    """What stops the command line before Hydra sees it (a setting written as a flag, a folder name
+    that cannot be one, a dataset or method that is not there)."""
+    from protocols.run_help import flag_problem
+
+    problem = flag_problem(args)
+    if problem:
+        return problem
+    name = _given(args, "experiment_name")   # before Hydra makes ${out_dir}/_hydra from it
     problem = path_name_problem("experiment_name", name) if name is not None else None
     if problem:
-        print(f"error: {problem} (it names the folder below the output root; set out_dir=PATH to write "
-              "elsewhere)", file=sys.stderr, flush=True)
-        raise SystemExit(2)
-    problem = check_command_line(sys.argv[1:])
-    if problem:
-        print(f"error: invalid config, nothing was run: {problem}", file=sys.stderr, flush=True)
-        raise SystemExit(2)
+        return f"{problem} (it names the folder below the output root; set out_dir=PATH to write elsewhere)"
+    problem = check_command_line(args)
+    return f"invalid config, nothing was run: {problem}" if problem else None
+
+
+def cli(argv: list[str] | None = None) -> int:
+    """``smgs run`` / ``python -m protocols.run``: every check before anything is written (also
+    Hydra's <out_dir>/_hydra/run.log), then the run under Hydra's logging. A refusal prints one
+    block and exits with status 2, a failed run with 1."""
+    from protocols.run_help import hydra_flags, run_help
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "-h" in args or "--help" in args:
+        print(run_help())
+        return 0
+    # `--force` is accepted as a flag as well as the Hydra override force=true
+    if "--force" in args:
+        args = [a for a in args if a != "--force"] + ["force=true"]
     signal.signal(signal.SIGTERM, on_sigterm)
     try:
-        main()
+        problem = _refusal(args)
+        if problem:
+            raise Refused(problem)
+        if hydra_flags(args):
+            _under_hydra(args, None)
+            return 0
+        from hydra import initialize_config_dir
+
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            prepared = prepare(compose_checked(args), args)
+        _under_hydra(args, lambda: _finish(lambda: run_prepared(prepared)))
+    except Refused as e:
+        print(f"error: {e.message}", file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_REFUSED) from None
     except Terminated:
         print("\nstopped by SIGTERM: the running cell was interrupted cleanly; rerun the same command to "
               "resume from its last checkpoint", file=sys.stderr, flush=True)
         raise SystemExit(128 + signal.SIGTERM) from None
+    return 0
 
 
 if __name__ == "__main__":
-    cli()
+    sys.exit(cli())

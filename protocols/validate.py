@@ -130,14 +130,16 @@ def train_settings(settings: CellSettings):
 
 
 def validate_payloads(payloads: list[dict]) -> None:
-    """Stop (SystemExit naming every problem and its cells) if any cell's config cannot run."""
+    """Stop (``Refused``, naming every problem and its cells) if any cell's config cannot run."""
+    from protocols.refused import Refused
+
     found: dict[str, list[str]] = {}
     for p in payloads:
         for problem in config_problems(p["config"], p.get("settings")):
             found.setdefault(problem, []).append(p["key"])
     if found:
         lines = [f"{problem} (in {len(keys)} cell(s), e.g. {keys[0]})" for problem, keys in found.items()]
-        raise SystemExit("invalid config, nothing was run:\n  " + "\n  ".join(lines))
+        raise Refused("invalid config, nothing was run:\n  " + "\n  ".join(lines))
 
 
 MIN_REFINE_EVERY = 10

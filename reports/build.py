@@ -10,7 +10,6 @@ previous build listed in its manifest), other files in DIR are kept.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import csv
 import fcntl
@@ -349,13 +348,9 @@ def _ours(out: Path, rel: str) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m reports.build", description=__doc__.splitlines()[0])
-    ap.add_argument("runs_dir", type=Path, nargs="+",
-                    help="directory searched recursively for results.json; several: one report of all "
-                         "(e.g. a grid split over machines), written below the first unless --out")
-    ap.add_argument("--out", type=Path, default=None, help="output directory (default RUNS_DIR/report)")
-    ap.add_argument("--no-stability", action="store_true", help="do not run the renderer's stiff-case battery")
-    args = ap.parse_args(argv)
+    from reports.commands import build_parser
+
+    args = build_parser().parse_args(argv)
     for d in args.runs_dir:
         if not d.is_dir():
             print(f"error: {d} is not a directory", file=sys.stderr)

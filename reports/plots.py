@@ -199,17 +199,42 @@ def _pareto_panel(ax, panel: str, pts: list[Point], xlabel: str, x_higher_better
                 label="Pareto front" if i_p == 0 else None)
         ax.scatter([p.x.mean for p in front], [p.psnr.mean for p in front], s=90, facecolors="none",
                    edgecolors="k", linewidths=0.9, zorder=4)
-    # budget labels: every point when few, else the front's (text layout dominates the drawing time)
-    for p in (pts if len(pts) <= 12 else front_all):
-        ax.annotate(p.label, (p.x.mean, p.psnr.mean), fontsize=6, xytext=(3, 3), textcoords="offset points")
     if log_x:
         ax.set_xscale("log")
         _sparse_log_ticks(ax)
-    ax.set_title(panel, fontsize=9)
+    # budget labels: every point when few, else the front's (text layout dominates the drawing time)
+    shared = _label_points(ax, pts if len(pts) <= 12 else front_all)
+    ax.set_title(panel + (f" ({shared})" if shared else ""), fontsize=9)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6, loc="best")
+
+
+LABEL_GAP_PX = 14   # a label closer than this to one already written (same text) is left out
+
+
+def _label_points(ax, pts: list[Point]) -> str | None:
+    """Write each point's budget beside it, without writing one over another: a label that all the
+    points share is returned instead (the panel's title says it once); a label next to one of the same
+    text is left out, one next to other labels goes above them; a point near the right edge gets its
+    label on its left, inside the axes."""
+    labels = {p.label for p in pts}
+    if len(labels) == 1 and len(pts) > 1:
+        return next(iter(labels))
+    ax.autoscale_view()
+    (x0, _), (x1, _) = ax.transAxes.transform([(0, 0), (1, 1)])
+    placed: list[tuple[str, float, float]] = []
+    for p in pts:
+        x, y = ax.transData.transform((p.x.mean, p.psnr.mean))
+        near = [t for t, u, v in placed if abs(x - u) < LABEL_GAP_PX and abs(y - v) < LABEL_GAP_PX]
+        if p.label in near:
+            continue
+        placed.append((p.label, x, y))
+        left = x > x0 + 0.85 * (x1 - x0)
+        ax.annotate(p.label, (p.x.mean, p.psnr.mean), fontsize=6, xytext=(-3 if left else 3, 3 + 7 * len(near)),
+                    textcoords="offset points", ha="right" if left else "left")
+    return None
 
 
 def compact_number(v: float) -> str:

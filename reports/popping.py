@@ -8,7 +8,6 @@ In a report it appears with Table 4 (runs that computed view consistency); alone
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import sys
@@ -88,9 +87,9 @@ def popping_section(runs: list[RunResult] | None = None) -> tuple[Section, list[
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m reports.popping", description=__doc__.split("\n\n")[0])
-    ap.add_argument("out", type=Path, help="folder for popping.md, popping.csv and the strips")
-    args = ap.parse_args(argv)
+    from reports.commands import popping_parser
+
+    args = popping_parser().parse_args(argv)
     sec, plots = popping_section()
     args.out.mkdir(parents=True, exist_ok=True)
     md = sec.markdown() + "\n" + "\n".join(f"![{p.caption}]({p.name})\n" for p in plots)

@@ -44,17 +44,20 @@ class Value:
 
 
 def preset_description(runs: Iterable[RunResult]) -> str:
-    """What a reduced preset changes, from the runs' protocol config: "3000 steps, images ≤ 400 px"."""
-    parts: list[str] = []
+    """What a reduced preset changes, from the runs' protocol config: "3000 steps, images ≤ 400 px";
+    runs of different lengths: "300 or 3000 steps". A model only evaluated here (a PLY) has no steps."""
+    steps: list[int] = []
+    widths: list[int] = []
     for r in runs:
         proto = (r.config or {}).get("protocol") or {}
-        steps = r.steps or proto.get("steps")
-        if steps and f"{steps} steps" not in parts:
-            parts.append(f"{steps} steps")
+        n = r.steps or proto.get("steps")
+        if n and (r.source or {}).get("kind") != "pretrained" and n not in steps:
+            steps.append(n)
         w = proto.get("max_width")
-        if w and f"images ≤ {w} px wide" not in parts:
-            parts.append(f"images ≤ {w} px wide")
-    return ", ".join(parts)
+        if w and w not in widths:
+            widths.append(w)
+    parts = [f"{' or '.join(str(n) for n in sorted(steps))} steps"] if steps else []
+    return ", ".join(parts + [f"images ≤ {' or '.join(str(w) for w in sorted(widths))} px wide"] * bool(widths))
 
 
 def flow_estimator(r: RunResult) -> str:

@@ -112,8 +112,8 @@ def mix_notes(runs: Iterable[RunResult], what: str = "This table") -> list[str]:
     pre = sorted({f"{r.scene}/{r.method} ← {r.source.get('ply')}" for r in runs
                   if (r.source or {}).get("kind") == "pretrained"})
     if pre:
-        notes.append("Rows marked (pretrained) are models trained elsewhere, read from a PLY and only evaluated "
-                     "here under the same protocol (no train time of ours): " + "; ".join(pre[:5])
+        notes.append("Rows marked (pretrained) are models read from a PLY (another tool's, or a run's own, "
+                     "exported) and only evaluated here under the same protocol (no train time): " + "; ".join(pre[:5])
                      + (f"; … {len(pre) - 5} more" if len(pre) > 5 else "") + ".")
     alpha = {f"{r.dataset}/{r.scene}": r.data["alpha_dropped"] for r in runs
              if isinstance(r.data, dict) and r.data.get("alpha_dropped")}

@@ -10,9 +10,13 @@ import os
 # point is); a value the user set is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from smgs.camera import Camera
-from smgs.raster import MODES, RenderOutput, rasterize, rasterize_splats
+from smgs.lazy import lazy_names
 from smgs.version import __version__
+
+# The renderer's names load on first use, so that `import smgs.x` for a light module (the command
+# line's `--help` and `smgs list`) does not import torch.
+__getattr__ = lazy_names("smgs", {"Camera": "camera", "rasterize": "raster", "rasterize_splats": "raster",
+                                  "RenderOutput": "raster", "MODES": "raster"})
 __all__ = ["Camera", "rasterize", "rasterize_splats", "RenderOutput", "MODES", "__version__", "results", "curves"]
 
 

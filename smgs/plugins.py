@@ -33,6 +33,23 @@ def source_of(ep: metadata.EntryPoint) -> str:
     return f"plugin {dist.name if dist else ep.value}"
 
 
+def target_doc(target: str) -> str:
+    """The docstring of the class a ``"module:Class"`` target names, read from the module's source
+    without importing it (a listing imports nothing: no torch for ``smgs list``); "" where none."""
+    import ast
+    import importlib.util
+    from pathlib import Path
+
+    module, _, attr = target.partition(":")
+    spec = importlib.util.find_spec(module)
+    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+        return ""
+    for node in ast.parse(Path(spec.origin).read_text()).body:
+        if isinstance(node, ast.ClassDef) and node.name == attr:
+            return ast.get_docstring(node) or ""
+    return ""
+
+
 def load_target(target: str, what: str) -> Any:
     """The object a ``"module:attr"`` string names (``attr`` may be dotted), imported now."""
     module, _, attr = target.partition(":")

@@ -4,51 +4,13 @@ says about it."""
 
 from __future__ import annotations
 
-import re
 import sys
-from pathlib import Path
+
+from protocols.config_files import config_entries, sentences
 
 GROUPS = {"experiments": "experiment", "datasets": "dataset", "budgets": "budget", "protocols": "protocol"}
 LISTED = ("methods", *GROUPS, "strategies", "renderers")
 USAGE = "usage: smgs list {" + ",".join(LISTED) + "}"
-ABOUT_CHARS = 160   # whole sentences of a config's opening comment, up to about this many characters
-SENTENCE_END = re.compile(r"(?<=[.!?])\s+(?=[A-Z\"'(<`])")
-
-
-def sentences(text: str) -> list[str]:
-    """``text`` cut after each full stop that ends a sentence: followed by a capital, and outside
-    brackets (not "supp. Sec. 6" inside "(paper Sec. 4.1, supp. Sec. 6)")."""
-    out, start = [], 0
-    for m in SENTENCE_END.finditer(text):
-        head = text[start:m.start()]
-        if head.count("(") == head.count(")") and head.count("[") == head.count("]"):
-            out.append(head)
-            start = m.end()
-    return out + [text[start:]]
-
-
-def first_comment(path: Path) -> str:
-    """What a config file is: the whole sentences that fit in ``ABOUT_CHARS`` (at least one, never
-    cut) of its opening comment block, without the ``@package`` directive."""
-    block: list[str] = []
-    for line in path.read_text().splitlines():
-        text = line.lstrip("#").strip()
-        if not line.startswith("#") or (block and not text):
-            break
-        if text and not text.startswith("@package"):
-            block.append(text)
-    about = ""
-    for sentence in sentences(" ".join(block)):
-        if about and len(about) + 1 + len(sentence) > ABOUT_CHARS:
-            break
-        about = f"{about} {sentence}".strip()
-    return about
-
-
-def config_entries(group: str) -> list[tuple[str, str]]:
-    from protocols.run import CONFIG_DIR   # here, not above: `smgs --help` imports this module
-
-    return [(p.stem, first_comment(p)) for p in sorted((Path(CONFIG_DIR) / group).glob("*.yaml"))]
 
 
 def dataset_entries() -> list[tuple[str, str]]:
@@ -75,15 +37,16 @@ def method_entries() -> list[tuple[str, str]]:
 
 
 def strategy_entries() -> list[tuple[str, str]]:
-    """The densification strategies: a built-in's first sentence of its class's doc (importing it), a
-    plugin's distribution (not imported)."""
-    from smgs.train.strategies.registry import BUILTINS, list_strategies, plugin_source, strategy_class
+    """The densification strategies: a built-in's first sentence of its class's doc (read from its
+    source, not imported), a plugin's distribution (not imported)."""
+    from smgs.plugins import target_doc
+    from smgs.train.strategies.registry import BUILTINS, list_strategies, plugin_source
 
     out = []
     for name in list_strategies():
         pick = f"+method.train.densify.strategy={name}"
         if name in BUILTINS:
-            about = sentences(" ".join((strategy_class(name).__doc__ or "").split()))[0]
+            about = sentences(" ".join(target_doc(BUILTINS[name]).split()))[0]
             out.append((name, f"{about} ({pick})"))
         else:
             out.append((name, f"a densification strategy from a plugin: {pick} ({plugin_source(name) or 'registered'})"))

@@ -21,24 +21,27 @@ class Command:
     run: Callable[[list[str]], int]
 
 
+def _asks_help(args: list[str]) -> bool:
+    return "-h" in args or "--help" in args
+
+
 def _run(args: list[str]) -> int:
+    if _asks_help(args):   # answered without importing the runner (Hydra, torch)
+        from protocols.run_help import run_help
+
+        print(run_help())
+        return 0
     from protocols.run import cli
 
-    return _with_argv("smgs run", args, cli)
-
-
-def _with_argv(prog: str, args: list[str], fn: Callable[[], object]) -> int:
-    """Call a program that reads ``sys.argv`` itself (Hydra's), with ``args`` as its arguments."""
-    saved = sys.argv
-    sys.argv = [prog, *args]
-    try:
-        fn()
-    finally:
-        sys.argv = saved
-    return 0
+    return cli(args)
 
 
 def _report(args: list[str]) -> int:
+    if _asks_help(args):   # from the parser alone: the report's modules import matplotlib and torch
+        from reports.commands import build_parser
+
+        build_parser().print_help()
+        return 0
     from reports.build import main
 
     return main(args)
@@ -69,6 +72,11 @@ def _render(args: list[str]) -> int:
 
 
 def _popping(args: list[str]) -> int:
+    if _asks_help(args):
+        from reports.commands import popping_parser
+
+        popping_parser().print_help()
+        return 0
     from reports.popping import main
 
     return main(args)

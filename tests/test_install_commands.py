@@ -37,9 +37,11 @@ def test_torch_is_a_range_that_admits_what_is_installed_first():
 
 
 def test_the_readme_opens_with_the_two_commands_and_ci_runs_its_test_command():
+    """The first block holds on a machine without a GPU: its torch is PyTorch's CPU build."""
     main, tests = readme_commands()
-    assert main.startswith("pip install torch==") and "-e ." in main and main.endswith("smgs run +experiment=smoke")
-    assert tests.startswith("pip install torch==") and '-e ".[test]"' in tests
+    assert main.startswith("pip install torch==") and "--index-url https://download.pytorch.org/whl/cpu" in main
+    assert "-e ." in main and main.endswith("smgs run +experiment=smoke")
+    assert '-e ".[test]"' in tests and "torch" not in tests   # the torch of the first command is kept
     test_command = tests.split("&&")[-1].strip()
     ci = (REPO / ".ci" / "run").read_text().splitlines()
     assert test_command == "python -m pytest" and test_command in ci
@@ -47,11 +49,13 @@ def test_the_readme_opens_with_the_two_commands_and_ci_runs_its_test_command():
 
 def test_the_cpu_only_install_takes_the_same_torch_from_pytorchs_cpu_index():
     """PyPI's torch on Linux x86-64 is the CUDA build; the README and docs/usage.md give a CPU-only
-    machine the same release from PyTorch's CPU wheel index, then the same harness install."""
+    machine the same release from PyTorch's CPU wheel index, and the README's GPU line takes PyPI's
+    build, then the same harness install."""
     main, _ = readme_commands()
     pin = re.search(r"torch==([\d.]+)", main)[1]
     for page in (REPO / "README.md", REPO / "docs" / "usage.md"):
         found = re.findall(r"pip install torch==([\d.]+) --index-url (\S+)", page.read_text())
         assert found and set(found) == {(pin, "https://download.pytorch.org/whl/cpu")}, page
-    cpu_line = next(ln for ln in (REPO / "README.md").read_text().splitlines() if "whl/cpu" in ln)
-    assert cpu_line.split("&&", 1)[1].strip() == main.split("&&", 1)[1].strip()   # then the same steps
+    gpu_line = next(ln for ln in (REPO / "README.md").read_text().splitlines()
+                    if ln.startswith(f"pip install torch=={pin} &&"))
+    assert gpu_line.split("&&", 1)[1].strip() == main.split("&&", 1)[1].strip()   # then the same steps

@@ -44,8 +44,8 @@ def test_a_default_changed_in_the_code_is_what_the_configs_show(monkeypatch):
     assert _train_section("softmax_gs")["k_max"] == 128
 
 
-def test_run_help_shows_them_to_override():
-    out = subprocess.run([sys.executable, "-m", "protocols.run", "--help"], capture_output=True, text=True,
+def test_the_composed_config_shows_them_to_override():
+    """``smgs run --cfg job`` (Hydra's print of the composed config, which ``smgs run --help`` names)."""
+    out = subprocess.run([sys.executable, "-m", "protocols.run", "--cfg", "job"], capture_output=True, text=True,
                          cwd=ROOT, timeout=300, check=True).stdout
-    assert "method/train: splatting" in out
     assert "  train:\n    k_max: 128\n    k_max_scope: pixel\n    eq15: solved\n" in out

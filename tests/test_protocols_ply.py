@@ -51,7 +51,7 @@ def test_a_pretrained_ply_scores_as_the_run_that_trained_it(runs, method, capsys
     assert evaluate_ply.main([str(ply), f"out_dir={runs}", "report=false", *SCENE]) == 0
     assert "already evaluated" in capsys.readouterr().out
     other = "3dgs" if method == "softmax_gs" else "softmax_gs"
-    assert evaluate_ply.main([str(ply), f"out_dir={runs}", f"method={other}", *SCENE]) == 1
+    assert evaluate_ply.main([str(ply), f"out_dir={runs}", f"method={other}", *SCENE]) == 2   # refused: nothing ran
     assert f"holds a {method} model" in capsys.readouterr().err
 
 
@@ -66,8 +66,24 @@ def test_export_command_writes_the_run_end_file_again(runs, tmp_path, capsys):
 
 def test_bad_ply_is_refused_before_anything_is_written(runs, tmp_path, capsys):
     (tmp_path / "bad.ply").write_bytes(b"")
-    assert evaluate_ply.main([str(tmp_path / "bad.ply"), f"out_dir={tmp_path / 'out'}", *SCENE]) == 1
+    assert evaluate_ply.main([str(tmp_path / "bad.ply"), f"out_dir={tmp_path / 'out'}", *SCENE]) == 2
     assert "bad.ply: empty file" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_scene_is_named_as_smgs_run_names_it(runs, tmp_path, capsys):
+    """A dataset given by its folder is its one scene, named after the folder (README's ``smgs evaluate
+    point_cloud.ply dataset=colmap dataset.path=/my/capture`` once stopped at "has scenes []"); a
+    dataset of several needs scene=, and the message lists them."""
+    ply = _run(runs, "3dgs") / "point_cloud.ply"
+    cfg = evaluate_ply.evaluation_config(ply, ["dataset=colmap", f"dataset.path={tmp_path / 'capture'}/"])
+    assert cfg["scene"] == "capture"
+    assert evaluate_ply.main([str(ply), "dataset=mipnerf360", f"out_dir={tmp_path / 'out'}"]) == 2
+    err = capsys.readouterr().err
+    assert "dataset 'mipnerf360' holds 7 scenes (bicycle, bonsai, counter, garden, kitchen, room, stump): name the one " \
+           "the model shows with scene=NAME" in err and "[]" not in err
+    assert evaluate_ply.main([str(ply), "+steps=3", f"out_dir={tmp_path / 'out'}"]) == 2
+    assert "did you mean protocol.steps=3?" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 
@@ -77,5 +93,8 @@ def test_the_report_marks_the_pretrained_row(runs):
     ply = _run(runs, "3dgs") / "point_cloud.ply"
     assert evaluate_ply.main([str(ply), f"out_dir={runs}", "report=false", *SCENE]) == 0
     md = build_report(runs, stability="skipped in this test").read_text()
-    assert "3D GS (pretrained)" in md and "trained elsewhere, read from a PLY" in md
+    assert "3D GS (pretrained)" in md and "models read from a PLY (another tool's, or a run's own, exported)" in md
+    assert "trained elsewhere" not in md   # the PLY here is this harness's own export
+    # the preset's footnote names the trained runs' length, not the evaluation config's 3000 beside it
+    assert "[cpu] = the cpu preset (4 steps, images ≤ 400 px wide)" in md and "3000 steps" not in md
     assert json.loads((_run(runs, "3dgs", "pretrained") / "results.json").read_text())["source"]["sha256"]

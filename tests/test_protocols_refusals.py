@@ -79,9 +79,10 @@ def test_a_misspelled_method_on_the_command_line_gets_the_one_block_form(tmp_pat
     p = subprocess.run([sys.executable, "-m", "protocols.run", "+experiment=smoke", "grid.methods=[softmax_gz]",
                         "report=false", f"out_dir={tmp_path}"], cwd=REPO, capture_output=True, text=True,
                        timeout=180)
-    assert p.returncode == 1 and "Traceback" not in p.stderr and "Error executing job" not in p.stderr
-    assert p.stderr.strip() == ("invalid config, nothing was run: grid.methods=softmax_gz is no method; known methods: "
-                                "3dgs, gef_only, softmax_gs, softmax_only, stopthepop")
+    assert p.returncode == 2 and "Traceback" not in p.stderr and "Error executing job" not in p.stderr
+    assert p.stderr.strip() == ("error: invalid config, nothing was run: grid.methods=softmax_gz is no method; known "
+                                "methods: 3dgs, gef_only, softmax_gs, softmax_only, stopthepop")
+    assert not (tmp_path / "_hydra").exists()   # refused before Hydra's run.log
 
 
 @needs_fern

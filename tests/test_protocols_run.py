@@ -119,8 +119,8 @@ def test_missing_dataset_names_the_folder_and_skip_records_it(tmp_path):
 def test_config_typo_is_a_clear_error_on_the_command_line():
     p = subprocess.run([sys.executable, "-m", "protocols.run", "+experiment=smoke", "protocol.stpes=5"],
                        cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert p.returncode != 0
-    assert "stpes" in p.stderr and "not in struct" in p.stderr
+    assert p.returncode == 2
+    assert "protocol.stpes=5: no setting is called protocol.stpes" in p.stderr and "did you mean protocol.steps=5?" in p.stderr
 
 
 def test_consistency_row_and_trajectory_recorded(tmp_path):

@@ -22,7 +22,8 @@ from pathlib import Path
 LAYERS = ("smgs", "baselines", "protocols", "reports", "smgs_cli")  # each may import only those before it
 
 # Inside smgs, each group may import its own and those before it: plain helpers that import no other
-# smgs module (version, env, atomic writes, the device setting, the camera, a setting's ranges, what
+# smgs module (version, env, atomic writes, the device setting, the camera, a setting's ranges, the
+# nearest spelling of a key, a package's names on first use, what
 # the plug-in registries share), then the renderer, the
 # scenes, the metrics, training, a cell's identity (its settings and inputs, as the runner and the
 # reports compare them), model files (the PLY and its mapping onto the trainer), run results
@@ -30,7 +31,8 @@ LAYERS = ("smgs", "baselines", "protocols", "reports", "smgs_cli")  # each may i
 # demo). A dotted name covers its package and submodules;
 # "smgs" is the package's own __init__ only. A module in no group is reported, to be placed.
 SMGS_LAYERS: tuple[tuple[str, ...], ...] = (
-    ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera", "smgs.ranges", "smgs.plugins"),
+    ("smgs.version", "smgs.env", "smgs.atomic", "smgs.device", "smgs.camera", "smgs.ranges", "smgs.plugins",
+     "smgs.spelling", "smgs.lazy"),
     ("smgs.raster",),
     ("smgs.data",),
     ("smgs.metrics",),

@@ -13,12 +13,17 @@ from smgs.data.formats import SceneFormat, SceneRequest
 from smgs.data.registry import check_scene, get_dataset, load_scene
 from smgs.data.rules import GENERIC_RULES
 from smgs.data.images import ResolutionRule
-from smgs.data.scene import (DatasetNotFoundError, MissingImageError, Scene, SceneFormatError, View,
-                             camera_extent, split_every)
+from smgs.data.errors import DatasetNotFoundError, MissingImageError, SceneFormatError
+
+_SCENE = ("Scene", "View", "camera_extent", "split_every")
 
 
 def __getattr__(name: str):
-    # Lazy re-exports so that ``import smgs.data`` does not import pycolmap or OpenCV.
+    # Lazy re-exports so that ``import smgs.data`` does not import pycolmap or OpenCV, nor torch (the
+    # scene's tensors) for what only names datasets and formats (``smgs list``, ``--help``).
+    if name in _SCENE:
+        from smgs.data import scene
+        return getattr(scene, name)
     if name == "load_colmap":
         from smgs.data.colmap import load_colmap
         return load_colmap

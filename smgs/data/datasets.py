@@ -24,7 +24,7 @@ from typing import Mapping
 
 from smgs.data.images import ResolutionRule
 from smgs.data.rules import GENERIC_RULES
-from smgs.data.scene import DatasetNotFoundError
+from smgs.data.errors import DatasetNotFoundError
 
 DATA_ROOT_ENV = "SMGS_DATA_ROOT"
 

@@ -13,10 +13,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, Sequence, runtime_checkable
 
 from smgs.data.datasets import DatasetSpec
-from smgs.data.scene import Scene
+
+if TYPE_CHECKING:   # a type only: importing the scene (torch) is left to the loaders
+    from smgs.data.scene import Scene
 
 HARNESS_KEYS: tuple[str, ...] = ("name", "kind", "scenes", "steps", "train")
 """The keys of a ``dataset`` section the harness reads itself: the dataset's name, its format

@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 import numpy as np
 from PIL import Image
 
-from smgs.data.scene import SceneFormatError
+from smgs.data.errors import SceneFormatError
 
 # PIL filters by name. BICUBIC is what 3DGS (PILtoTorch: ``Image.resize`` default) and gsplat
 # (``_resize_image_folder``) use, so it is the default for our own downscaling.

@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from smgs.data.datasets import DatasetSpec
 from smgs.data.formats import SceneFormat, SceneRequest, check_scene_with, format_fields, make_scene
-from smgs.data.scene import Scene
 from smgs.plugins import Registry
+from smgs.spelling import did_you_mean
+
+if TYPE_CHECKING:   # a type only: importing the scene (torch) is left to the loaders
+    from smgs.data.scene import Scene
 
 ENTRY_POINT_GROUP = "smgs.datasets"
 
@@ -125,7 +128,8 @@ def scene_format(kind: str, dataset: str | None = None, scene: str | None = None
     cls = format_class(kind)
     unknown = sorted(set(settings) - set(format_fields(cls)))
     if unknown:
-        raise ValueError(f"scene format {kind!r} takes no {', '.join(unknown)}; its settings: "
+        raise ValueError(f"scene format {kind!r} takes no {', '.join(unknown)}"
+                         f"{did_you_mean(unknown, format_fields(cls), 'dataset')}; its settings: "
                          f"{', '.join(format_fields(cls))}")
     dataset = dataset or kind
     layout = dataset_layout(dataset)

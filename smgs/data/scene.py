@@ -12,19 +12,9 @@ from dataclasses import dataclass, field
 import torch
 
 from smgs.camera import Camera
+from smgs.data.errors import DatasetNotFoundError, MissingImageError, SceneFormatError  # noqa: F401 (their old home)
 
 
-class DatasetNotFoundError(FileNotFoundError):
-    """A scene or dataset folder is absent (a run with ``on_missing=skip`` may skip the cell)."""
-
-
-class SceneFormatError(ValueError):
-    """A scene exists but cannot be used as it is: a corrupt or incomplete model, an unsupported
-    camera, inconsistent image sizes. The message names the file and the fix."""
-
-
-class MissingImageError(FileNotFoundError):
-    """An image the camera model lists is not on disk (a broken scene, never skipped silently)."""
 
 
 @dataclass

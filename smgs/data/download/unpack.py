@@ -85,7 +85,7 @@ def scene_problem(scene_dir: Path, expected: int | None, folders: tuple[str, ...
     """(registered images, None) for a complete scene, else (count so far, what is wrong)."""
     from smgs.data.colmap import find_model_dir, read_colmap_model
     from smgs.data.images import find_image
-    from smgs.data.scene import DatasetNotFoundError, SceneFormatError
+    from smgs.data.errors import DatasetNotFoundError, SceneFormatError
 
     try:
         model = read_colmap_model(find_model_dir(scene_dir), with_points=False)

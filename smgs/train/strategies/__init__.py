@@ -10,10 +10,14 @@ strategies by name (the built-ins "default", 3DGS adaptive density control in ``
 
 from __future__ import annotations
 
-from smgs.train.strategies.base import FixedCount, RefineEvent, Strategy, StrategyRun
-from smgs.train.strategies.default import SIZE_PRUNE_3DGS, SIZE_PRUNE_SOFTMAX_GS, DefaultStrategy
-from smgs.train.strategies.mcmc import MCMCStrategy
-from smgs.train.strategies.registry import list_strategies, register, start_strategy, strategy_class, unregister
+from smgs.lazy import lazy_names
+
+# on first use: the registry lists the strategies without importing them (nor torch)
+__getattr__ = lazy_names("smgs.train.strategies", {
+    **dict.fromkeys(("FixedCount", "RefineEvent", "Strategy", "StrategyRun"), "base"),
+    **dict.fromkeys(("SIZE_PRUNE_3DGS", "SIZE_PRUNE_SOFTMAX_GS", "DefaultStrategy"), "default"),
+    "MCMCStrategy": "mcmc",
+    **dict.fromkeys(("list_strategies", "register", "start_strategy", "strategy_class", "unregister"), "registry")})
 
 __all__ = ["Strategy", "StrategyRun", "RefineEvent", "FixedCount", "DefaultStrategy", "MCMCStrategy",
            "SIZE_PRUNE_3DGS", "SIZE_PRUNE_SOFTMAX_GS", "list_strategies", "register", "unregister",
