@@ -55,8 +55,12 @@ CANNOT_RUN: dict[str, str] = {
     "smgs evaluate output/garden/point_cloud/iteration_30000/point_cloud.ply dataset=mipnerf360 scene=garden "
     "experiment_name=full": "needs a model the original 3DGS code trained on garden, and Mip-NeRF360 (smgs download)",
     # a cluster
-    "smgs run +experiment=full executor.kind=slurm executor.slurm.partition=gpu executor.slurm.timeout_min=600 "
-    "executor.slurm.gpus_per_node=1": "needs a SLURM cluster and the paper's datasets",
+    "smgs run +experiment=smoke executor.kind=slurm executor.slurm.partition=debug device=cpu":
+        "needs a SLURM cluster: tests/test_slurm_executor.py runs this command, read from the page, on the "
+        "single-node test cluster",
+    "smgs run +experiment=full executor.kind=slurm executor.slurm.partition=gpu device=cuda "
+    "executor.slurm.timeout_min=600 executor.slurm.cpus_per_task=8 executor.slurm.mem_gb=32":
+        "needs a SLURM cluster with GPUs and the paper's datasets",
     # a plugin the page writes
     "smgs run grid.datasets=[my_capture] +dataset.path=/data/lab +dataset.frames=50 grid.methods=[3dgs,softmax_gs]":
         "needs the page's example scene-format plugin (my_capture) installed",

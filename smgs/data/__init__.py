@@ -7,13 +7,12 @@ from plain values. The loaders are importable on their own (``smgs.data.colmap.l
 imports (pycolmap, OpenCV) happen on use.
 """
 
-from smgs.data.contract import SceneContractError, check_scene_contract
 from smgs.data.datasets import DATA_ROOT_ENV, DatasetSpec, resolve_data_root
 from smgs.data.formats import SceneFormat, SceneRequest
 from smgs.data.registry import check_scene, get_dataset, load_scene
 from smgs.data.rules import GENERIC_RULES
 from smgs.data.images import ResolutionRule
-from smgs.data.errors import DatasetNotFoundError, MissingImageError, SceneFormatError
+from smgs.data.errors import DatasetNotFoundError, MissingImageError, SceneContractError, SceneFormatError
 
 _SCENE = ("Scene", "View", "camera_extent", "split_every")
 
@@ -24,6 +23,9 @@ def __getattr__(name: str):
     if name in _SCENE:
         from smgs.data import scene
         return getattr(scene, name)
+    if name == "check_scene_contract":
+        from smgs.data.contract import check_scene_contract
+        return check_scene_contract
     if name == "load_colmap":
         from smgs.data.colmap import load_colmap
         return load_colmap

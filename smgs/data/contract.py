@@ -19,7 +19,8 @@ import torch
 
 from smgs.camera import Camera
 from smgs.data.images import MIN_SIDE, field_of_view_problem
-from smgs.data.scene import Scene, SceneFormatError, View, view_key
+from smgs.data.errors import SceneContractError
+from smgs.data.scene import Scene, View, view_key
 
 POSE_TOLERANCE = 1e-3
 """How far a view's rotation may be from orthonormal (``|RᵀR − I|``, element-wise): float32 poses
@@ -29,11 +30,6 @@ SHOWN = 5
 """Problems listed in one error; the count of the others follows."""
 
 GUIDE = "docs/adding-a-scene-format.md#what-the-harness-checks"
-
-
-class SceneContractError(SceneFormatError):
-    """A scene a format made breaks the scene contract; the message names the scene, the view and
-    the rule, and the fix."""
 
 
 def check_scene_contract(scene: Any, where: str, needs_test: bool = True) -> Scene:

@@ -13,3 +13,8 @@ class SceneFormatError(ValueError):
 
 class MissingImageError(FileNotFoundError):
     """An image the camera model lists is not on disk (a broken scene, never skipped silently)."""
+
+
+class SceneContractError(SceneFormatError):
+    """A scene a format made breaks the scene contract (``smgs.data.contract``); the message names
+    the scene, the view and the rule, and the fix."""
