@@ -24,6 +24,16 @@ def given(overrides: list[str], key: str) -> str | None:
     return value
 
 
+def touched(overrides: list[str], key: str) -> str | None:
+    """The command line's setting of ``key`` or of a key below it, as written without its ``+``
+    (``grid.seeds_of.slow=[0,1]`` sets ``grid.seeds_of``); None where it sets neither."""
+    for o in overrides:
+        k, sep, _ = o.lstrip("+").partition("=")
+        if sep and (k == key or k.startswith(key + ".")):
+            return o.lstrip("+")
+    return None
+
+
 def _say(text: str) -> None:
     print(text, flush=True)
 
@@ -106,8 +116,8 @@ def _seed_count(cfg: DictConfig, overrides: list[str]) -> list[int]:
         raise ValueError(f"seeds={n!r}: give the number of seeds, a whole number ≥ 1 (seeds=3 runs seeds 0, 1, "
                          "2; for a list of seed numbers use grid.seeds=[...])")
     for key in ("grid.seeds", "grid.seeds_of"):
-        if given(overrides, key) is not None:
-            raise ValueError(f"seeds={n} and {key}={given(overrides, key)} disagree; give seeds=N to run seeds 0 … "
+        if touched(overrides, key) is not None:
+            raise ValueError(f"seeds={n} and {touched(overrides, key)} disagree; give seeds=N to run seeds 0 … "
                              f"N-1 of every method, or {key} alone")
     seeds = list(range(n))
     listed = [int(s) for s in cfg.grid.seeds]
@@ -135,7 +145,7 @@ def grid_seeds(cfg: DictConfig, overrides: list[str] = ()) -> tuple[list[int], d
     listed_of = cfg.grid.get("seeds_of")
     seeds_of = {str(m): [int(s) for s in v] for m, v in OmegaConf.to_container(listed_of).items()} if listed_of else {}
     if seeds_of and given(overrides, "grid.seeds") is not None:
-        if given(overrides, "grid.seeds_of") is None:
+        if touched(overrides, "grid.seeds_of") is None:
             _say(f"grid.seeds=[{_listed(seeds)}]: every method runs seeds {_listed(seeds)} (instead of the experiment's "
                  f"grid.seeds_of {seeds_of})")
             return seeds, {}

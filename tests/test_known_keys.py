@@ -96,6 +96,17 @@ def test_grid_seeds_on_the_command_line_replaces_the_experiments_seeds_of_and_sa
     assert keys == ["3dgs/full/seed0", "3dgs/full/seed1", "3dgs/full/seed2", "gef_only/full/seed0"] and not said
 
 
+def test_a_key_below_grid_seeds_of_counts_as_giving_it(capsys):
+    """``grid.seeds_of.softmax_gs=[0,1]`` beside ``grid.seeds=[0]`` gives both: the per-method seeds
+    are kept, not replaced by ``grid.seeds`` as when only ``grid.seeds`` is given."""
+    keys, said = cells(capsys, "+experiment=smoke", "grid.methods=[softmax_gs,gef_only]", "grid.seeds=[0]",
+                       "grid.seeds_of.softmax_gs=[0,1]")
+    assert keys == ["softmax_gs/full/seed0", "softmax_gs/full/seed1", "gef_only/full/seed0"]
+    assert "run their grid.seeds_of seeds, the other methods grid.seeds" in said
+    with pytest.raises(SystemExit, match=r"seeds=2 and grid\.seeds_of\.softmax_gs=\[1\] disagree"):
+        cells(capsys, "+experiment=smoke", "seeds=2", "grid.seeds_of.softmax_gs=[1]")
+
+
 def test_seeds_n_says_what_it_replaces_and_refuses_a_seed_list_beside_it(capsys):
     keys, said = cells(capsys, "+experiment=smoke", "grid.methods=[3dgs]", "seeds=1")
     assert keys == ["3dgs/full/seed0"] and "seeds=1: running seeds 0 of every method (instead of" in said
