@@ -21,7 +21,7 @@ import torch
 from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, Resolved, RunSettings, SceneNeeds, merge_config
 from smgs.data.scene import Scene
 from smgs.device import as_device
-from smgs.plugins import entry_points, load_target, source_of
+from smgs.plugins import entry_points, load_entry_point, load_target, source_of
 
 ENTRY_POINT_GROUP = "smgs.methods"
 
@@ -69,7 +69,7 @@ def get_spec(name: str) -> MethodSpec:
         return BUILTINS[name]
     ep = _entry_points().get(name)
     if ep is not None:
-        obj = ep.load()
+        obj = load_entry_point(ep, "method")
         if isinstance(obj, MethodSpec):
             return obj
         return MethodSpec(name, obj, source=source_of(ep))
