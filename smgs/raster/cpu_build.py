@@ -87,8 +87,8 @@ def select_isa() -> str:
     if not want:
         return can[0]
     if want not in ISAS:
-        raise ValueError(f"{ISA_ENV}={want!r} is not a CPU SIMD path; choose one of {', '.join(ISAS)} "
-                         f"(this host runs {', '.join(can)})")
+        raise ValueError(f"{ISA_ENV}={want!r} (an environment variable) is not a CPU SIMD path; it takes one of "
+                         f"{', '.join(ISAS)} (this host runs {', '.join(can)}), or unset it to take the best")
     if want not in can:
         raise RuntimeError(f"{ISA_ENV}={want}: this CPU ({platform.machine()}) cannot run the {want} path; "
                            f"it runs {', '.join(can)} (unset {ISA_ENV} to take the best)")
@@ -184,10 +184,14 @@ class CpuExtension:
         return "cpu"
 
     def is_available(self) -> bool:
-        """Whether the path in use builds; a failed build (``BuildError``) propagates."""
+        """Whether the path in use builds; a failed build (``BuildError``) propagates, and so does an
+        ``SMGS_CPU_ISA`` that names no path (a ValueError: a typo must not fall back to the 100-1000x
+        slower reference renderer, as an unknown ``renderer.kernels`` does not)."""
         try:
             isa = select_isa()
-        except (ValueError, RuntimeError) as exc:   # an SMGS_CPU_ISA this host cannot run
+        except ValueError:
+            raise
+        except RuntimeError as exc:   # an SMGS_CPU_ISA this host cannot run
             log.warning("smgs cpu %s unavailable: %s", self.what, exc)
             return False
         return self.jit(isa).is_available()
