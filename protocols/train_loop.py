@@ -168,6 +168,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     with track_peak_memory(device) as peak:
         result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, result.config_hash, log,
                              neighbours, watch)
+    _final_checkpoint(run_dir, method, steps, clock, result.curve, result.config_hash, watch)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
@@ -191,10 +192,6 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
         with clock.exclude("consistency"):
             result.consistency = consistency(method, scene, run_dir, ev, device, asked_renderer(cfg))
     result.status = "ok"
-    # the final state is kept as the run's checkpoint (rendering later needs no retraining)
-    _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in result.curve], "config_hash": result.config_hash,
-                                       "collapse_watch": watch.to_json()})
     after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
 
@@ -228,9 +225,9 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps, moved off opacity resets (``eval_steps``; the error-
     against-time curve, returned) and a checkpoint every ``checkpoint_every`` steps, both outside
-    the train clock. ``neighbours``
-    counts the cells running on this machine every 10 steps; ``watch`` follows the Gaussian count
-    (``protocols.collapse``; its history is kept in the checkpoints)."""
+    the train clock (the final one is ``_final_checkpoint``'s, before the final evaluation).
+    ``neighbours`` counts the cells running on this machine every 10 steps; ``watch`` follows the
+    Gaussian count (``protocols.collapse``; its history is kept in the checkpoints)."""
     progress = _load_checkpoint(run_dir, method, config_hash, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     if progress.get("collapse_watch"):
@@ -256,10 +253,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             log.info("step %d: %.1f s, PSNR %.2f, %d Gaussians", done, clock.seconds, last_psnr,
                      method.num_gaussians())
         if every and done % every == 0 and done < steps:
-            with clock.exclude("checkpoint"):
-                _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
-                                                   "curve": [c.__dict__ for c in curve],
-                                                   "config_hash": config_hash, "collapse_watch": watch.to_json()})
+            _checkpoint(run_dir, method, done, clock, curve, config_hash, watch)
         bar.update(1)
         if done % 10 == 0 or done == steps:
             if neighbours is not None:
@@ -273,6 +267,30 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             bar.set_postfix(post, gs=method.num_gaussians())
     bar.close()
     return curve
+
+
+def _checkpoint(run_dir: Path, method, step: int, clock: TrainClock, curve: list[CurvePoint], config_hash: str,
+                watch: CollapseWatch) -> None:
+    with clock.exclude("checkpoint"):
+        _save_checkpoint(run_dir, method, {"step": step, "train_seconds": clock.seconds,
+                                           "curve": [c.__dict__ for c in curve], "config_hash": config_hash,
+                                           "collapse_watch": watch.to_json()})
+
+
+def _final_checkpoint(run_dir: Path, method, steps: int, clock: TrainClock, curve: list[CurvePoint],
+                      config_hash: str, watch: CollapseWatch) -> None:
+    """The trained state as the run's checkpoint, before the final evaluation: a kill during the
+    metrics, LPIPS, FPS or the consistency frames resumes from it without retraining, and later
+    rendering and PLY export read it. A run resumed from it (killed during its evaluation) has it
+    already."""
+    try:
+        ptr = json.loads((run_dir / POINTER).read_text())
+        progress = json.loads((run_dir / ptr["dir"] / "progress.json").read_text())
+        if progress.get("step") == steps and progress.get("config_hash") == config_hash:
+            return
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    _checkpoint(run_dir, method, steps, clock, curve, config_hash, watch)
 
 
 def final_metrics(method, scene, test_rgb: list[torch.Tensor], ev: EvalConfig, run_dir: Path,
