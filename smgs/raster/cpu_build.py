@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
+from smgs.raster.buildproc import run_in_group
 from smgs.raster.jit import JitExtension
 
 log = logging.getLogger(__name__)
@@ -127,7 +128,7 @@ def openmp_flags() -> tuple[list[str], list[str], str]:
         for cflags, ldflags, what in candidates:
             cmd = [cxx, *cflags, str(Path(tmp, "omp.cpp")), "-o", str(Path(tmp, "omp")), *ldflags]
             try:
-                if subprocess.run(cmd, capture_output=True, timeout=120).returncode == 0:
+                if run_in_group(cmd, timeout=120).returncode == 0:
                     return cflags, ldflags, what
             except (OSError, subprocess.SubprocessError):
                 break
