@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from protocols.executors import Terminated, on_sigterm
 from protocols.grid import Cell, check_path_names, expand, path_name_problem
 from protocols.method_defaults import register as register_method_defaults
+from protocols.out_dir import composed_out_dir, out_dir_problem
 
 log = logging.getLogger("smgs.protocols")
 
@@ -329,6 +330,9 @@ def _run(cfg: DictConfig, overrides: list[str]) -> list[dict]:
 
     from protocols.validate import schedule_warning, validate_payloads
 
+    problem = out_dir_problem(Path(cfg.out_dir))
+    if problem:
+        raise SystemExit(f"nothing was run: {problem}")
     cells, payloads = plan(cfg, overrides)
     if cfg.report:
         from protocols.report_step import builder
@@ -405,6 +409,11 @@ def cli() -> None:
     problem = check_command_line(sys.argv[1:])
     if problem:
         print(f"error: invalid config, nothing was run: {problem}", file=sys.stderr, flush=True)
+        raise SystemExit(2)
+    out = composed_out_dir(CONFIG_DIR, sys.argv[1:])   # before Hydra writes its log there
+    problem = out_dir_problem(out) if out is not None else None
+    if problem:
+        print(f"error: nothing was run: {problem}", file=sys.stderr, flush=True)
         raise SystemExit(2)
     signal.signal(signal.SIGTERM, on_sigterm)
     try:
