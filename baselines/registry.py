@@ -17,7 +17,7 @@ from importlib import metadata
 from typing import TYPE_CHECKING, Any
 
 from baselines.method import METHOD_FUNCTIONS, Method, MethodSpec, Resolved, RunSettings, SceneNeeds, merge_config
-from smgs.plugins import entry_points, load_target, source_of
+from smgs.plugins import entry_points, load_entry_point, load_target, source_of
 
 if TYPE_CHECKING:   # types only: listing the methods imports no torch
     import torch
@@ -70,7 +70,7 @@ def get_spec(name: str) -> MethodSpec:
         return BUILTINS[name]
     ep = _entry_points().get(name)
     if ep is not None:
-        obj = ep.load()
+        obj = load_entry_point(ep, "method")
         if isinstance(obj, MethodSpec):
             return obj
         return MethodSpec(name, obj, source=source_of(ep))

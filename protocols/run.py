@@ -25,6 +25,7 @@ from protocols.config_files import CONFIG_DIR, config_names, has_config
 from protocols.grid import Cell, check_path_names, expand, path_name_problem
 from protocols.grid_axes import given as _given, grid_datasets, grid_seeds, one_or_list
 from protocols.method_defaults import register as register_method_defaults
+from protocols.out_dir import out_dir_problem
 from protocols.refused import EXIT_REFUSED, Refused
 
 log = logging.getLogger("smgs.protocols")
@@ -263,6 +264,9 @@ def prepare(cfg: DictConfig, overrides: list[str]) -> Prepared:
     anything runs or is written; a ``Refused`` names what stops it."""
     from protocols.validate import validate_payloads
 
+    problem = out_dir_problem(Path(cfg.out_dir))
+    if problem:
+        raise SystemExit(f"nothing was run: {problem}")
     cells, payloads = plan(cfg, overrides)
     if cfg.report:
         from protocols.report_step import builder
@@ -427,7 +431,11 @@ def cli(argv: list[str] | None = None) -> int:
         from hydra import initialize_config_dir
 
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-            prepared = prepare(compose_checked(args), args)
+            cfg = compose_checked(args)
+            problem = out_dir_problem(Path(str(cfg.out_dir)))   # before Hydra writes its log there
+            if problem:
+                raise Refused(f"nothing was run: {problem}")
+            prepared = prepare(cfg, args)
         _under_hydra(args, lambda: _finish(lambda: run_prepared(prepared)))
     except Refused as e:
         print(f"error: {e.message}", file=sys.stderr, flush=True)

@@ -180,6 +180,7 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     with track_peak_memory(device) as peak:
         result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, key, log,
                              neighbours, watch, stops)
+    _final_checkpoint(run_dir, method, steps, clock, result.curve, key, watch)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
@@ -206,10 +207,6 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     result.status = "ok"
     # this process's wall time on the run (since its resume, for a resumed one): what a video's cost is a share of
     result.diagnostics["run_seconds"] = time.perf_counter() - started
-    # the final state is kept as the run's checkpoint (rendering later needs no retraining)
-    _save_checkpoint(run_dir, method, {"step": steps, "train_seconds": clock.seconds,
-                                       "curve": [c.__dict__ for c in result.curve], **key.checkpoint_fields(),
-                                       "collapse_watch": watch.to_json()})
     after_run(cfg, run_dir, method, result, log)   # PLY export (export_ply), pretrained bookkeeping
     return result
 
@@ -243,11 +240,11 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
     """The training loop, resumed from this config's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps, moved off opacity resets (``eval_steps``; the error-
     against-time curve, returned) and a checkpoint every ``checkpoint_every`` steps, both outside
-    the train clock. ``neighbours``
-    counts the cells running on this machine every 10 steps; ``watch`` follows the Gaussian count
-    (``protocols.collapse``; its history is kept in the checkpoints). A stop request (``stops``: a
-    signal to the cell's job) is carried out after the step it came in, that step's checkpoint saved
-    first."""
+    the train clock (the final one is ``_final_checkpoint``'s, before the final evaluation).
+    ``neighbours`` counts the cells running on this machine every 10 steps; ``watch`` follows the
+    Gaussian count (``protocols.collapse``; its history is kept in the checkpoints). A stop request
+    (``stops``: a signal to the cell's job) is carried out after the step it came in, that step's
+    checkpoint saved first."""
     progress = _load_checkpoint(run_dir, method, key, log) or \
         {"step": 0, "train_seconds": 0.0, "curve": []}
     if progress.get("collapse_watch"):
@@ -276,10 +273,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
                      method.num_gaussians())
         stop = stops.take() if stops is not None else None
         if (every and done % every == 0 and done < steps) or stop is not None:
-            with clock.exclude("checkpoint"):
-                _save_checkpoint(run_dir, method, {"step": done, "train_seconds": clock.seconds,
-                                                   "curve": [c.__dict__ for c in curve],
-                                                   **key.checkpoint_fields(), "collapse_watch": watch.to_json()})
+            _checkpoint(run_dir, method, done, clock, curve, key, watch)
         if stop is not None:
             log.info("step %d: stopping for %s; checkpoint saved", done, stop.reason)
             stop.action()
@@ -298,6 +292,31 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
         stops.end()
     bar.close()
     return curve
+
+
+def _checkpoint(run_dir: Path, method, step: int, clock: TrainClock, curve: list[CurvePoint], key: CellKey,
+                watch: CollapseWatch) -> None:
+    with clock.exclude("checkpoint"):
+        _save_checkpoint(run_dir, method, {"step": step, "train_seconds": clock.seconds,
+                                           "curve": [c.__dict__ for c in curve], **key.checkpoint_fields(),
+                                           "collapse_watch": watch.to_json()})
+
+
+def _final_checkpoint(run_dir: Path, method, steps: int, clock: TrainClock, curve: list[CurvePoint],
+                      key: CellKey, watch: CollapseWatch) -> None:
+    """The trained state as the run's checkpoint, before the final evaluation: a kill during the
+    metrics, LPIPS, FPS or the consistency frames resumes from it without retraining, and later
+    rendering and PLY export read it. A run resumed from it (killed during its evaluation) has it
+    already."""
+    try:
+        ptr = json.loads((run_dir / POINTER).read_text())
+        progress = json.loads((run_dir / ptr["dir"] / "progress.json").read_text())
+        same = key.mismatch(progress.get("config_hash"), progress.get("inputs")) is None
+        if progress.get("step") == steps and same:
+            return
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    _checkpoint(run_dir, method, steps, clock, curve, key, watch)
 
 
 def final_metrics(method, scene, test_rgb: list[torch.Tensor], ev: EvalConfig, run_dir: Path,

@@ -48,7 +48,22 @@ def renderer_problems(cfg: dict) -> list[str]:
             check_choice(axis, section.get(axis), f"renderer.{axis}")
         except ValueError as e:
             problems.append(str(e))
-    return problems
+    return problems + cpu_isa_problems(cfg)
+
+
+def cpu_isa_problems(cfg: dict) -> list[str]:
+    """``$SMGS_CPU_ISA`` naming no SIMD path of the compiled CPU kernels, refused as an unknown
+    ``renderer.kernels`` is (it would otherwise leave the renderer to the 100-1000x slower reference);
+    one this CPU cannot run, too, where the cells run on this machine (not on a SLURM cluster's)."""
+    from smgs.raster.cpu_build import select_isa
+
+    try:
+        select_isa()
+    except ValueError as e:
+        return [str(e)]
+    except RuntimeError as e:
+        return [] if _get(cfg, "executor.kind") == "slurm" else [str(e)]
+    return []
 
 
 def _choices() -> tuple[tuple[str, tuple[str, ...]], ...]:

@@ -3,7 +3,12 @@ use, and third-party entries from a Python entry-point group, never allowed to s
 Scene formats and datasets (smgs.data.registry) and densification strategies
 (smgs.train.strategies.registry) are each a ``Registry``; methods (baselines.registry), whose
 built-ins are ``MethodSpec`` records rather than targets, use its functions (``entry_points``,
-``load_target``, ``source_of``)."""
+``load_target``, ``source_of``, ``load_entry_point``).
+
+An entry point that cannot be loaded (a misspelt module or attribute, a plug-in whose import fails)
+or an entry that is not what its registry takes is a ``PluginError`` naming the entry point, its
+distribution and the fix: a ValueError, so that the harness refuses the config in its one-block form
+before anything runs."""
 
 from __future__ import annotations
 
@@ -12,6 +17,15 @@ import warnings
 from collections.abc import Iterable
 from importlib import metadata
 from typing import Any
+
+
+class PluginError(ValueError):
+    """A plug-in entry that cannot be used; the message names the entry point, its distribution and
+    the fix."""
+
+
+class PluginTypeError(PluginError, TypeError):
+    """An entry that is not the kind of object its registry takes (a TypeError too, as before)."""
 
 
 def entry_points(group: str, builtins: Iterable[str], what: str) -> dict[str, metadata.EntryPoint]:
@@ -48,6 +62,46 @@ def target_doc(target: str) -> str:
         if isinstance(node, ast.ClassDef) and node.name == attr:
             return ast.get_docstring(node) or ""
     return ""
+
+
+def describe_entry_point(ep: metadata.EntryPoint) -> str:
+    """``the entry point NAME = module:attr (group G) of the distribution D V``."""
+    dist = getattr(ep, "dist", None)
+    who = f"the distribution {dist.name} {dist.version}" if dist else "a distribution that could not be named"
+    return f"the entry point {ep.name} = {ep.value} (group {ep.group}) of {who}"
+
+
+def entry_point_fix(ep: metadata.EntryPoint) -> str:
+    """How to mend a plug-in's entry point: in its package metadata, or by uninstalling it."""
+    dist = getattr(ep, "dist", None)
+    name = dist.name if dist else "the plug-in"
+    return (f"correct it in {name}'s metadata ([project.entry-points.\"{ep.group}\"] in its pyproject.toml) and "
+            f"reinstall it, or uninstall it (pip uninstall {name})")
+
+
+def load_entry_point(ep: metadata.EntryPoint, what: str) -> Any:
+    """The object ``ep`` names, imported now; a ``PluginError`` says which part of it fails: a module
+    that is not installed, an attribute the module lacks, or the plug-in's own import."""
+    where = describe_entry_point(ep)
+    try:
+        obj = importlib.import_module(ep.module)
+    except ModuleNotFoundError as e:
+        if e.name and (ep.module == e.name or ep.module.startswith(e.name + ".")):
+            problem = f"no module {e.name!r} is installed (a misspelt module?)"
+        else:
+            problem = f"importing {ep.module} fails: {type(e).__name__}: {e} (a dependency of the plug-in is missing?)"
+        raise PluginError(f"{what} {ep.name!r} cannot be loaded: {where}: {problem}; {entry_point_fix(ep)}") from e
+    except Exception as e:   # the plug-in's own import raised: its words, and whose they are
+        raise PluginError(f"{what} {ep.name!r} cannot be loaded: importing {ep.module} for {where} raises "
+                          f"{type(e).__name__}: {e}; {entry_point_fix(ep)}") from e
+    for part in (ep.attr or "").split("."):
+        if not part:
+            continue
+        if not hasattr(obj, part):
+            raise PluginError(f"{what} {ep.name!r} cannot be loaded: {where}: {getattr(obj, '__name__', ep.module)} "
+                              f"has no {part!r} (a misspelt name?); {entry_point_fix(ep)}")
+        obj = getattr(obj, part)
+    return obj
 
 
 def load_target(target: str, what: str) -> Any:
@@ -93,6 +147,16 @@ class Registry:
         ep = self.entry_points().get(name)
         return None if ep is None else source_of(ep)
 
+    def wrong_kind(self, name: str, entry: Any, takes: str, guide: str) -> PluginTypeError:
+        """The error for an entry that is not what this registry takes: where it comes from (a plug-in's
+        entry point and distribution, this process, the built-ins) and the fix."""
+        ep = None if name in self._registered or name in self.builtins else self.entry_points().get(name)
+        if ep is None:
+            where = "registered in this process" if name in self._registered else f"built-in {self.builtins.get(name)}"
+            return PluginTypeError(f"{self.what} {name!r} ({where}) is {entry!r}, not {takes} ({guide})")
+        return PluginTypeError(f"{self.what} {name!r}: {describe_entry_point(ep)} names {entry!r}, which is not "
+                               f"{takes} ({guide}); point the entry point at one: {entry_point_fix(ep)}")
+
     def get(self, name: str) -> Any:
         """The entry registered as ``name`` (imported now); a KeyError where there is none."""
         if name in self._registered:
@@ -102,4 +166,4 @@ class Registry:
         ep = self.entry_points().get(name)
         if ep is None:
             raise KeyError(name)
-        return ep.load()
+        return load_entry_point(ep, self.what)

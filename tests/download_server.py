@@ -66,12 +66,17 @@ def tandt_db_zip() -> bytes:
 
 class Server:
     """``files``: name -> bytes, served at /<name>. ``cut_after``: name -> byte count at which the next
-    answer for it is broken off (once). ``failing``: names answered 503. ``requests`` records (path,
+    answer for it is broken off (once). ``failing``: names answered 503. ``overstate``: name -> bytes a
+    lying server adds to the file's size in every answer (Content-Length, Content-Range), sending only
+    the real bytes; with ``honest_ranges`` it answers a range past the real end 416 with the real size
+    (as a server whose full answers alone go through a broken proxy). ``requests`` records (path,
     Range, If-Range) of each GET."""
 
     def __init__(self, files: dict[str, bytes]):
         self.files = dict(files)
         self.cut_after: dict[str, int] = {}
+        self.overstate: dict[str, int] = {}
+        self.honest_ranges = False
         self.failing: set[str] = set()   # names answered 503 (a server failure), else 404 when absent
         self.requests: list[tuple[str, str | None, str | None]] = []
         server = self
@@ -98,19 +103,21 @@ class Server:
             h.send_error(503 if name in self.failing else 404)
             return
         data, start = self.files[name], 0
+        size = len(data) + self.overstate.get(name, 0)   # the size the server claims
         m = re.fullmatch(r"bytes=(\d+)-", rng or "")
         if m and (if_range is None or if_range == self.etag(name)):
             start = int(m.group(1))
-            if start >= len(data):
+            end = len(data) if self.honest_ranges else size
+            if start >= end:
                 h.send_response(416)
-                h.send_header("Content-Range", f"bytes */{len(data)}")
+                h.send_header("Content-Range", f"bytes */{end}")
                 h.send_header("Content-Length", "0")
                 h.end_headers()
                 return
         h.send_response(206 if start else 200)
         if start:
-            h.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
-        h.send_header("Content-Length", str(len(data) - start))
+            h.send_header("Content-Range", f"bytes {start}-{size - 1}/{size}")
+        h.send_header("Content-Length", str(size - start))
         h.send_header("ETag", self.etag(name))
         h.end_headers()
         body = data[start:]

@@ -290,8 +290,9 @@ def test_a_later_run_refuses_an_archive_that_changed_since_the_manifest(tmp_path
             _get(root, srv.url, "tandt", scenes=("truck",))
     other = tmp_path / "tandt_db.zip"
     other.write_bytes(zip_bytes({"tandt/truck/": scene_files(251)}).ljust(len(tandt_db), b"\0"))
-    with pytest.raises(ArchiveError, match=r"has sha256 [0-9a-f]{64}, but tandt_db\.zip had [0-9a-f]{64}"):
+    with pytest.raises(ArchiveError, match=r"has sha256 [0-9a-f]{64}, but tandt_db\.zip had [0-9a-f]{64}") as e:
         _get(root, _closed_port_url(), "tandt", scenes=("truck",), from_file=other)
+    assert "delete it" not in str(e.value) and f"{other} is left as it is" in str(e.value), "a user's own file"
 
 
 def test_unknown_names_are_refused_with_what_exists(tmp_path):
@@ -408,3 +409,129 @@ def test_ctrl_c_keeps_what_arrived_and_the_same_command_resumes(tmp_path, tandt_
         assert main(cmd) == 0
     assert srv.requests[1][1] == f"bytes={2 * 64 * 1024}-"
     assert "done: 2 scene(s) unpacked" in capsys.readouterr().out
+
+
+def _stump_archive(tmp_path: Path) -> Path:
+    archive = tmp_path / "hand" / "360_v2.zip"
+    archive.parent.mkdir(exist_ok=True)
+    archive.write_bytes(_mipnerf_archive())
+    return archive
+
+
+def test_the_space_check_counts_the_blocks_the_files_take_not_only_their_sizes(tmp_path, monkeypatch):
+    """Free space equal to the declared sizes is not enough: each file takes whole blocks."""
+    archive = _stump_archive(tmp_path)
+    with zipfile.ZipFile(archive) as zf:
+        declared = sum(i.file_size for i in zf.infolist() if i.filename.startswith("stump/"))
+    Usage = namedtuple("Usage", "total used free")
+    monkeypatch.setattr(unpack.shutil, "disk_usage", lambda p: Usage(10**12, 10**12 - declared, declared))
+    root = tmp_path / "data"
+    with pytest.raises(DiskSpaceError) as e:
+        _get(root, _closed_port_url(), "mipnerf360", scenes=("stump",), from_file=archive)
+    assert (f"not enough free space in {root / 'mipnerf360'}: unpacking stump from 360_v2.zip needs "
+            f"{unpack.human_size(unpack.footprint(_members(archive, 'stump/'), unpack._block_size(root)))}, "
+            f"{unpack.human_size(declared)} are free") in str(e.value)
+    assert unpack.footprint(_members(archive, "stump/"), 4096) > 125 * 4 * 4096   # 500 images, a block each at least
+    assert _leftovers(root) == [] and not (root / "mipnerf360" / "stump").exists()
+
+
+def _members(archive: Path, prefix: str) -> list[zipfile.ZipInfo]:
+    with zipfile.ZipFile(archive) as zf:
+        return [i for i in zf.infolist() if i.filename.startswith(prefix) and not i.is_dir()]
+
+
+def test_a_disk_that_fills_up_while_unpacking_says_how_much_is_needed_and_where(tmp_path, monkeypatch):
+    import errno
+
+    archive = _stump_archive(tmp_path)
+    real, calls = unpack.shutil.copyfileobj, []
+
+    def filling(src, dst, length=0):
+        calls.append(1)
+        if len(calls) > 40:   # another writer took the space after the check
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(src, dst, length)
+
+    monkeypatch.setattr(unpack.shutil, "copyfileobj", filling)
+    root = tmp_path / "data"
+    with pytest.raises(DiskSpaceError) as e:
+        _get(root, _closed_port_url(), "mipnerf360", scenes=("stump",), from_file=archive)
+    msg = str(e.value)
+    need = unpack.human_size(unpack.footprint(_members(archive, "stump/"), unpack._block_size(root)))
+    assert (f"the disk holding {root / 'mipnerf360'} filled up while unpacking stump from 360_v2.zip (No space left "
+            f"on device): it needs about {need} there, ") in msg
+    assert "are free now; the partial folder was removed" in msg and "--root DIR" in msg and "\n" not in msg
+    assert _leftovers(root) == [] and not (root / "mipnerf360" / "stump").exists()
+    assert archive.read_bytes() == _mipnerf_archive(), "the user's archive is untouched"
+
+
+@pytest.mark.parametrize("file_first", [True, False], ids=["file-then-folder", "folder-then-file"])
+def test_an_archive_with_a_file_where_a_folder_must_be_is_refused_naming_both(tmp_path, file_first):
+    files = scene_files(125, MIP_FOLDERS)
+    files = {"sparse": b"not a folder", **files} if file_first else {**files, "sparse": b"not a folder"}
+    archive = tmp_path / "360_v2.zip"
+    archive.write_bytes(zip_bytes({"stump/": files}))
+    root = tmp_path / "data"
+    with pytest.raises(ArchiveError) as e:
+        _get(root, _closed_port_url(), "mipnerf360", scenes=("stump",), from_file=archive)
+    msg = str(e.value)
+    assert "360_v2.zip holds stump/sparse as a file and also stump/sparse/0/" in msg
+    assert "a file where a folder must be" in msg and f"{archive} is not the 360_v2.zip its authors publish" in msg
+    assert _leftovers(root) == [] and not (root / "mipnerf360" / "stump").exists()
+
+
+@pytest.mark.parametrize("honest_ranges", [False, True], ids=["lies-on-resume-too", "range-says-the-real-size"])
+def test_a_server_whose_content_length_is_too_long_is_named_instead_of_a_rerun_forever(tmp_path, tandt_db,
+                                                                                       honest_ranges):
+    root, n = tmp_path / "data", len(tandt_db)
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        srv.overstate["tandt_db.zip"], srv.honest_ranges = 1000, honest_ranges
+        with pytest.raises(NetworkError, match=rf"ended at byte {n} of {n + 1000}; rerun the same command"):
+            _get(root, srv.url, "tandt")   # once, it looks like a broken connection
+        for _ in range(2):   # then it is named, and stays named
+            with pytest.raises(RemoteChangedError) as e:
+                _get(root, srv.url, "tandt")
+            msg = str(e.value)
+            assert (f"/tandt_db.zip declares the archive as {n + 1000} bytes (Content-Length) but sends nothing past "
+                    f"byte {n}, on two tries alike: its size is misreported") in msg
+            assert "a rerun would fail the same way" in msg and "rerun the same command" not in msg
+            assert f"--root {root} --from-file /path/to/tandt_db.zip" in msg
+    assert (root / STAGING / "tandt_db.zip.part").read_bytes() == tandt_db, "what arrived is kept"
+
+
+def test_a_transfer_broken_twice_at_different_bytes_still_resumes(tmp_path, tandt_db):
+    root = tmp_path / "data"
+    with Server({"tandt_db.zip": tandt_db}) as srv:
+        for cut in (1000, 5000):
+            srv.cut_after["tandt_db.zip"] = cut
+            with pytest.raises(NetworkError, match="rerun the same command to resume"):
+                _get(root, srv.url, "tandt")
+        assert _get(root, srv.url, "tandt")[0].unpacked == ["tandt/train", "tandt/truck"]
+
+
+@pytest.mark.parametrize("content", ["notes", "incomplete zip", "damaged member"])
+def test_from_file_of_the_wrong_file_never_says_to_delete_it(tmp_path, capsys, monkeypatch, content):
+    from smgs_cli.main import main
+
+    given = tmp_path / "notes.txt"
+    if content == "notes":
+        given.write_text("my own notes, not an archive\n")
+    elif content == "incomplete zip":
+        given.write_bytes(zip_bytes({"tandt/train/": scene_files(301, registered=300)}))
+    else:
+        good = zip_bytes({"tandt/train/": scene_files(301)})
+        with zipfile.ZipFile(io.BytesIO(good)) as zf:
+            info = zf.getinfo("tandt/train/images/frame_00042.jpg")
+            at = info.header_offset + 30 + len(info.filename) + len(info.extra) + 2
+        given.write_bytes(good[:at] + bytes([good[at] ^ 0xFF]) + good[at + 1:])
+    before = given.read_bytes()
+    monkeypatch.delenv("SMGS_DATA_ROOT", raising=False)
+    root = tmp_path / "data"
+    assert main(["download", "tandt", "--scenes", "train", "--root", str(root), "--from-file", str(given)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("smgs download: ") and err.count("\n") == 1, err
+    assert "delete" not in err.lower(), err
+    assert (f"{given} is not the tandt_db.zip its authors publish "
+            "(https://repo-sam.inria.fr/fungraph/3d-gaussian-splatting/datasets/input/tandt_db.zip); pass that "
+            f"archive with --from-file, or leave --from-file out to download it ({given} is left as it is)") in err
+    assert given.read_bytes() == before and _leftovers(root) == []

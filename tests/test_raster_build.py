@@ -20,6 +20,7 @@ import torch
 
 from smgs.raster.buildcache import ExtensionSpec, build_key, source_closure
 from smgs.raster.buildlock import LOCK_FILE, TORCH_LOCK_FILE, BuildLock, BuildLockTimeout
+from smgs.raster.buildproc import session_members
 from smgs.raster.cpu_build import cpu_extension
 from smgs.raster.jit import BuildError
 
@@ -28,9 +29,12 @@ TINY = Path(__file__).parent / "data" / "tiny_ext"
 
 # one build through the same path as the real kernels (cpu_extension), in its own process
 BUILD = """
-import json, sys
+import json, signal, sys
 from pathlib import Path
 from smgs.raster.cpu_build import cpu_extension
+if sys.argv[2:] == ["harness"]:   # SIGTERM as smgs run takes it: an exception in the main thread
+    from protocols.executors import on_sigterm
+    signal.signal(signal.SIGTERM, on_sigterm)
 src = Path(sys.argv[1])
 m = cpu_extension("smgs_test_tiny", [src / "tiny.cpp"], "test kernel", [src]).module()
 print(json.dumps({"answer": m.answer(), "file": m.__file__}))
@@ -61,6 +65,13 @@ def build(src: Path, root: Path, timeout: float = 240) -> tuple[dict, str]:
                        text=True, timeout=timeout)
     assert p.returncode == 0, p.stderr[-3000:]
     return json.loads(p.stdout.strip().splitlines()[-1]), p.stderr
+
+
+def _ppid(proc: Path) -> int | None:
+    try:
+        return int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def dead_pid() -> int:
@@ -148,7 +159,13 @@ def test_a_build_killed_midway_does_not_block_the_next(tmp_path):
         assert p.poll() is None, "the build ended before it could be killed"
         assert time.monotonic() < deadline, "the build never started"
         time.sleep(0.02)
+    # the build's own process and its compilers' session with it (all killed at once: kill -9 of
+    # everything, the OOM killer), so that nothing cleans up after it
+    builders = [int(d.name) for d in Path("/proc").glob("[0-9]*") if _ppid(d) == p.pid]
     os.killpg(p.pid, signal.SIGKILL)
+    for _ in range(2):
+        for pid in [m for b in builders for m in session_members(b)]:
+            os.kill(pid, signal.SIGKILL)
     p.wait()
     assert list(root.glob(f"*/{TORCH_LOCK_FILE}")), "the killed build should have left torch's lock"
     # the next build must proceed: a hang here (waiting on that lock) fails by the timeout
@@ -156,6 +173,62 @@ def test_a_build_killed_midway_does_not_block_the_next(tmp_path):
     assert r["answer"] == 11
     assert f"pid {p.pid}" in err and "killed build" in err, err
     assert not list(root.glob(f"*/{TORCH_LOCK_FILE}"))
+
+
+# A header that keeps the compiler busy for minutes (a constexpr loop): a build that is stopped must
+# stop it, not wait for it.
+SLOW_VALUE = """#define VALUE 11
+constexpr long smgs_slow() {
+    long s = 0;
+    for (long i = 0; i < 100000; ++i)
+        for (long j = 0; j < 100000; ++j) s += (i ^ j) & 1;
+    return s;
+}
+static_assert(smgs_slow() >= 0, "keeps the compiler busy");
+"""
+
+
+def _builders(src: Path, but: int) -> dict[int, str]:
+    """pid -> (name, command line) of every process but ``but`` whose command line names ``src``."""
+    out = {}
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            name = (proc / "comm").read_text().strip()
+        except OSError:
+            continue
+        if str(src) in cmd and int(proc.name) != but:
+            out[int(proc.name)] = f"{name}: {cmd[:120]}"
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the compilers in /proc")
+@pytest.mark.parametrize("handler", ["harness", "default"])
+def test_sigterm_while_the_compilers_run_leaves_none_of_them_running(tmp_path, handler):
+    """SIGTERM to a process building a kernel (``smgs run`` turns it into an exception; a plain
+    script dies of it) stops the build's compilers too: none is left orphaned."""
+    root, src = tmp_path / "ext", checkout(tmp_path, "slow", 11)
+    (src / "value.h").write_text(SLOW_VALUE)
+    env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(root))
+    p = subprocess.Popen([sys.executable, "-c", BUILD, str(src), handler], env=env, cwd=REPO,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not any(v.startswith("cc1plus") for v in _builders(src, p.pid).values()):
+            assert p.poll() is None, p.stderr.read()[-3000:]
+            assert time.monotonic() < deadline, "the compiler never started"
+            time.sleep(0.02)
+        p.send_signal(signal.SIGTERM)
+        p.wait(60)
+        deadline = time.monotonic() + 5   # the build's child notices its parent gone within 0.5 s
+        while _builders(src, p.pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _builders(src, p.pid) == {}, "left running after SIGTERM"
+    finally:
+        for pid in _builders(src, p.pid):   # what a build without the fix leaves
+            os.kill(pid, signal.SIGKILL)
+        p.kill()
+        p.wait()
 
 
 # ---- failures -----------------------------------------------------------------------------------

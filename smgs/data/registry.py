@@ -114,8 +114,8 @@ def format_class(kind: str) -> type:
     if isinstance(entry, DatasetSpec):
         return format_class(entry.format)
     if not (isinstance(entry, type) and dataclasses.is_dataclass(entry) and callable(getattr(entry, "load", None))):
-        raise TypeError(f"scene format {kind!r} ({entry!r}) is not a dataclass with load(request) -> Scene: its "
-                        "fields are its config (docs/adding-a-scene-format.md)")
+        raise _REGISTRY.wrong_kind(kind, entry, "a dataclass with load(request) -> Scene (its fields are its config)",
+                                   "docs/adding-a-scene-format.md")
     return entry
 
 

@@ -7,10 +7,11 @@ flags target (the CPU kind for ``-march=native``, the GPU archs) and the torch a
 Two checkouts, or two versions of smgs, sharing one cache therefore never load each other's
 library; the same sources built twice share one.
 
-A finished build leaves ``smgs-build.json`` beside its library; later processes load the library
-directly (well under a second). Builds are serialised by ``BuildLock``; each is announced with the
-duration of the last build of that extension (remembered in ``<root>/smgs-build-times.json``) and
-its own duration is logged when it ends.
+The compilers run in a process group of their own (``smgs.raster.buildproc``): an interrupted or
+killed build leaves none of them running. A finished build leaves ``smgs-build.json`` beside its
+library; later processes load the library directly (well under a second). Builds are serialised
+by ``BuildLock``; each is announced with the duration of the last build of that extension
+(remembered in ``<root>/smgs-build-times.json``) and its own duration is logged when it ends.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import torch
 
 from smgs.atomic import atomic_write_text
 from smgs.raster.buildlock import BuildLock
+from smgs.raster.buildproc import build_library
 
 log = logging.getLogger(__name__)
 
@@ -179,7 +181,7 @@ def compile_and_load(spec: ExtensionSpec, say: Callable[[str], None] = _say, hea
     lib = _library(build_dir, name)
     if _read_json(build_dir / MARKER).get("module") == name and lib.is_file():
         return _import(name, lib)
-    with BuildLock(build_dir, spec.what, say=say):
+    with BuildLock(build_dir, spec.what, say=say) as lock:
         if _read_json(build_dir / MARKER).get("module") == name and lib.is_file():
             return _import(name, lib)   # built by the process we waited for
         expected = last_build_seconds(root, spec.name)
@@ -188,13 +190,10 @@ def compile_and_load(spec: ExtensionSpec, say: Callable[[str], None] = _say, hea
         say(f"building the {spec.what} ({name}) in {build_dir}; {guess}. It is built once and cached.")
         start = time.perf_counter()
         stop = _heartbeat(spec.what, expected, heartbeat_s, say)
-        try:
-            from torch.utils.cpp_extension import load
-
-            module = load(name=name, sources=[str(s) for s in spec.sources],
-                          extra_include_paths=[str(i) for i in spec.include_dirs],
-                          extra_cflags=list(spec.cflags), extra_cuda_cflags=list(spec.cuda_cflags) or None,
-                          extra_ldflags=list(spec.ldflags), build_directory=str(build_dir), verbose=False)
+        try:   # in a process group of its own, stopped whole if this process is interrupted
+            build_library(name, [str(s) for s in spec.sources], build_dir, [str(i) for i in spec.include_dirs],
+                          list(spec.cflags), list(spec.cuda_cflags) or None, list(spec.ldflags), lock.fd)
+            module = _import(name, lib)
         finally:
             stop.set()
         seconds = time.perf_counter() - start

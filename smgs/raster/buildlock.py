@@ -80,6 +80,13 @@ class BuildLock:
         self._remove_stale_torch_lock(previous)
         return self
 
+    @property
+    def fd(self) -> int | None:
+        """The locked file's descriptor while held: a build's child process given it (``pass_fds``)
+        holds the lock until it ends too, so a builder killed before its compilers never lets the
+        next one into the directory while they still write there."""
+        return self._fd
+
     def __exit__(self, *exc) -> None:
         if self._fd is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)

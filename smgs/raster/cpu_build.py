@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from smgs.raster.buildcache import ExtensionSpec, compile_and_load
+from smgs.raster.buildproc import run_in_group
 from smgs.raster.jit import JitExtension
 
 log = logging.getLogger(__name__)
@@ -87,8 +88,8 @@ def select_isa() -> str:
     if not want:
         return can[0]
     if want not in ISAS:
-        raise ValueError(f"{ISA_ENV}={want!r} is not a CPU SIMD path; choose one of {', '.join(ISAS)} "
-                         f"(this host runs {', '.join(can)})")
+        raise ValueError(f"{ISA_ENV}={want!r} (an environment variable) is not a CPU SIMD path; it takes one of "
+                         f"{', '.join(ISAS)} (this host runs {', '.join(can)}), or unset it to take the best")
     if want not in can:
         raise RuntimeError(f"{ISA_ENV}={want}: this CPU ({platform.machine()}) cannot run the {want} path; "
                            f"it runs {', '.join(can)} (unset {ISA_ENV} to take the best)")
@@ -127,7 +128,7 @@ def openmp_flags() -> tuple[list[str], list[str], str]:
         for cflags, ldflags, what in candidates:
             cmd = [cxx, *cflags, str(Path(tmp, "omp.cpp")), "-o", str(Path(tmp, "omp")), *ldflags]
             try:
-                if subprocess.run(cmd, capture_output=True, timeout=120).returncode == 0:
+                if run_in_group(cmd, timeout=120).returncode == 0:
                     return cflags, ldflags, what
             except (OSError, subprocess.SubprocessError):
                 break
@@ -184,10 +185,14 @@ class CpuExtension:
         return "cpu"
 
     def is_available(self) -> bool:
-        """Whether the path in use builds; a failed build (``BuildError``) propagates."""
+        """Whether the path in use builds; a failed build (``BuildError``) propagates, and so does an
+        ``SMGS_CPU_ISA`` that names no path (a ValueError: a typo must not fall back to the 100-1000x
+        slower reference renderer, as an unknown ``renderer.kernels`` does not)."""
         try:
             isa = select_isa()
-        except (ValueError, RuntimeError) as exc:   # an SMGS_CPU_ISA this host cannot run
+        except ValueError:
+            raise
+        except RuntimeError as exc:   # an SMGS_CPU_ISA this host cannot run
             log.warning("smgs cpu %s unavailable: %s", self.what, exc)
             return False
         return self.jit(isa).is_available()

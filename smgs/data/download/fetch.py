@@ -37,6 +37,8 @@ class Remote:
     offset: int
     response: HTTPResponse | None
     validator: str | None
+    short_at: int | None = None   # where an earlier try of this size ended short
+    manual: str = ""              # how to fetch it by hand (the end of a misreported size's message)
 
     @property
     def remaining(self) -> int | None:
@@ -77,6 +79,14 @@ def _total(resp: HTTPResponse, offset: int) -> int | None:
     return int(length) if length and length.isdigit() else None
 
 
+def misreported(url: str, declared: int, ends: int, part: Path, manual: str) -> RemoteChangedError:
+    return RemoteChangedError(
+        f"{url} declares the archive as {declared} bytes (Content-Length) but sends nothing past byte {ends}, on "
+        f"two tries alike: its size is misreported (or something between here and the server cuts the transfer "
+        f"there), and a rerun would fail the same way. What arrived is kept in {part}. Fetch the archive another "
+        f"way (a browser, another mirror with --mirror URL) and hand it over: {manual}")
+
+
 def open_remote(url: str, part: Path, manual: str, timeout: float = TIMEOUT_S) -> Remote:
     """Ask for ``url`` from where ``part`` stops. ``manual`` says how to fetch it by hand; it ends
     every network error."""
@@ -91,17 +101,19 @@ def open_remote(url: str, part: Path, manual: str, timeout: float = TIMEOUT_S) -
     except urllib.error.HTTPError as e:
         if e.code == 416 and offset and meta.get("total") == offset:
             return Remote(url, offset, offset, None, meta.get("validator"))   # received whole earlier
+        if e.code == 416 and offset and (e.headers or {}).get("Content-Range") == f"bytes */{offset}":
+            raise misreported(url, meta.get("total") or offset, offset, part, manual) from None   # ends where we do
         if e.code == 416:
             part.unlink(missing_ok=True)
             return open_remote(url, part, manual, timeout)
         if e.code >= 500:
             raise NetworkError(f"{url} answered HTTP {e.code} {e.reason}, a failure of the server: try again "
-                               f"later. {manual}") from None
+                               f"later. Without network here, {manual}") from None
         raise RemoteChangedError(f"{url} answered HTTP {e.code} {e.reason}: the file has moved or is gone. "
-                                 f"{manual}") from None
+                                 f"Without network here, {manual}") from None
     except (urllib.error.URLError, OSError, HTTPException) as e:
         reason = getattr(e, "reason", e)
-        raise NetworkError(f"cannot reach {url} ({reason}). {manual}") from None
+        raise NetworkError(f"cannot reach {url} ({reason}). Without network here, {manual}") from None
     if resp.status != 206:
         offset = 0   # the whole file: the server did not resume (or its file changed)
     total = _total(resp, offset)
@@ -110,8 +122,10 @@ def open_remote(url: str, part: Path, manual: str, timeout: float = TIMEOUT_S) -
         part.unlink(missing_ok=True)
         return open_remote(url, part, manual, timeout)
     validator = resp.headers.get("ETag") or resp.headers.get("Last-Modified")
-    atomic_write_text(sidecar(part), json.dumps({"url": url, "total": total, "validator": validator}))
-    return Remote(url, total, offset, resp, validator)
+    short_at = meta.get("short_at") if meta.get("total") == total else None
+    atomic_write_text(sidecar(part), json.dumps({"url": url, "total": total, "validator": validator,
+                                                 "short_at": short_at}))
+    return Remote(url, total, offset, resp, validator, short_at, manual)
 
 
 def receive(remote: Remote, part: Path, progress: bool | None = None) -> None:
@@ -133,6 +147,10 @@ def receive(remote: Remote, part: Path, progress: bool | None = None) -> None:
         got = f.tell()
     remote.close()
     if remote.total is not None and got != remote.total:
+        if got == remote.short_at:   # the same end twice: not a broken connection
+            raise misreported(remote.url, remote.total, got, part, remote.manual)
+        meta = json.loads(sidecar(part).read_text())
+        atomic_write_text(sidecar(part), json.dumps({**meta, "short_at": got}))
         raise NetworkError(f"the transfer of {remote.url} ended at byte {got} of {remote.total}; rerun the same "
                            "command to resume from there")
 

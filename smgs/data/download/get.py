@@ -121,11 +121,21 @@ def download_command(datasets: tuple[str, ...], scenes: tuple[str, ...], root: P
 
 
 def manual_hint(archive: Archive, group: list[Wanted], root: Path) -> str:
-    """What to do without network: which file to fetch by hand and how to hand it over."""
+    """How to fetch by hand: which file, and how to hand it over."""
     cmd = download_command(tuple(w.dataset for w in group), tuple(w.scene for w in group), root,
                            f"/path/to/{archive.name}")
-    return (f"Without network here, fetch {archive.url} ({archive.size_text}) where there is network, copy it "
-            f"to this machine and run: {cmd}")
+    return (f"fetch {archive.url} ({archive.size_text}) where there is network, copy it to this machine and "
+            f"run: {cmd}")
+
+
+def remedy(archive: Archive, path: Path, given: bool) -> str:
+    """What to do with an archive that is damaged or not the expected one. One this run downloaded
+    may be deleted and fetched again; a file the user gave (--from-file) is theirs: it is said not
+    to be the expected archive, and left alone."""
+    if not given:
+        return "delete it and rerun to fetch it again"
+    return (f"{path} is not the {archive.name} its authors publish ({archive.url}); pass that archive with "
+            f"--from-file, or leave --from-file out to download it ({path} is left as it is)")
 
 
 def download(req: DownloadRequest, log: Callable[[str], None] = print) -> DownloadResult:
@@ -174,12 +184,13 @@ def exclusive(staging: Path) -> Iterator[None]:
 def _fetch_and_unpack(archive: Archive, group: list[Wanted], req: DownloadRequest, root: Path,
                       manifest: Manifest, log: Callable[[str], None]) -> list[str]:
     path, downloaded = _local_archive(archive, group, req, root, manifest, log)
-    digest = _verify(archive, path, manifest, log)
-    with open_zip(path) as zf:
+    fix = remedy(archive, path, req.from_file is not None)
+    digest = _verify(archive, path, manifest, log, fix)
+    with open_zip(path, fix) as zf:
         counts = {}
         for w in group:
             remove_stale(w.target.parent)
-            counts[w.key] = unpack_scene(zf, archive, w.scene, w.target, w.expected, w.folders)
+            counts[w.key] = unpack_scene(zf, archive, w.scene, w.target, w.expected, w.folders, fix)
             log(f"{w.key}: {counts[w.key]} registered images -> {w.target}")
     if archive.name not in manifest.archives:
         manifest.record_archive(archive.name, source_url(archive, req.mirror), path.stat().st_size, digest,
@@ -191,14 +202,15 @@ def _fetch_and_unpack(archive: Archive, group: list[Wanted], req: DownloadReques
     return [w.key for w in group]
 
 
-def _verify(archive: Archive, path: Path, manifest: Manifest, log: Callable[[str], None]) -> str:
-    """The archive's sha256, checked against a published one and the manifest's record."""
+def _verify(archive: Archive, path: Path, manifest: Manifest, log: Callable[[str], None], fix: str) -> str:
+    """The archive's sha256, checked against a published one and the manifest's record; ``fix``:
+    what to do with a mismatch (``remedy``)."""
     manifest.check_size(archive.name, path.stat().st_size, str(path))
     log(f"checking {path} (sha256)")
     digest = sha256_of(path)
     if archive.sha256 and digest != archive.sha256:
-        raise ArchiveError(f"{path} has sha256 {digest}, not the published {archive.sha256}: delete it and rerun")
-    manifest.check_sha256(archive.name, digest, path)
+        raise ArchiveError(f"{path} has sha256 {digest}, not the published {archive.sha256}: {fix}")
+    manifest.check_sha256(archive.name, digest, path, fix)
     return digest
 
 

@@ -76,10 +76,12 @@ class Manifest:
                 f"entry in {self.path} (or the whole file) and rerun; scenes unpacked from the old one stay "
                 "until you pass --force")
 
-    def check_sha256(self, name: str, sha256: str, path: Path) -> None:
+    def check_sha256(self, name: str, sha256: str, path: Path, fix: str) -> None:
+        """``fix``: what to do with a file that is not the recorded one (to delete one this run
+        downloaded; never one the user gave)."""
         known = self.archives.get(name)
         if known and sha256 != known["sha256"]:
             raise ArchiveError(
                 f"{path} has sha256 {sha256}, but {name} had {known['sha256']} when first downloaded on "
-                f"{known['date']} ({self.path}). Delete {path} and rerun to fetch it again, or delete the "
-                f"entry in {self.path} to accept this file")
+                f"{known['date']} ({self.path}): {fix}; or, to accept this file, delete the entry of {name} in "
+                f"{self.path}")

@@ -29,7 +29,7 @@ BUILTINS: dict[str, str] = {
     "mcmc": "smgs.train.strategies.mcmc:MCMCStrategy",
 }
 
-_REGISTRY = Registry(ENTRY_POINT_GROUP, BUILTINS, "strategy")
+_REGISTRY = Registry(ENTRY_POINT_GROUP, BUILTINS, "densification strategy")
 
 
 def register(name: str, cls: type, overwrite: bool = False) -> None:
@@ -63,8 +63,8 @@ def strategy_class(name: str) -> type:
         raise ValueError(f"unknown densification strategy {name!r} (densify.strategy); known: "
                          f"{', '.join(list_strategies())} (docs/adding-a-strategy.md)") from None
     if not (isinstance(cls, type) and issubclass(cls, Strategy) and dataclasses.is_dataclass(cls)):
-        raise TypeError(f"densification strategy {name!r} ({cls!r}) is not a dataclass subclassing "
-                        "smgs.train.strategies.Strategy: its fields are its config (docs/adding-a-strategy.md)")
+        raise _REGISTRY.wrong_kind(name, cls, "a dataclass subclassing smgs.train.strategies.Strategy (its fields "
+                                   "are its config)", "docs/adding-a-strategy.md")
     return cls
 
 
