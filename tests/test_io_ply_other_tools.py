@@ -75,7 +75,8 @@ def test_a_model_of_no_gaussians_is_not_scored_and_a_name_with_equals_is_the_fil
     write_by_hand(ply, **k)
     assert len(read_ply(ply)) == 0    # a collapsed run's export still reads back as written
     out = tmp_path / "out"
-    assert evaluate_ply.main([str(ply), f"out_dir={out}", "dataset.width=32", "dataset.height=24"]) == 1
+    # refused before anything runs: exit status 2 (docs/usage.md, "Exit status")
+    assert evaluate_ply.main([str(ply), f"out_dir={out}", "dataset.width=32", "dataset.height=24"]) == 2
     err = capsys.readouterr().err
     assert f"error: {ply}: 0 vertices: a model of no Gaussians, nothing to score" in err and "Traceback" not in err
     assert not out.exists()
