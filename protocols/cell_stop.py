@@ -5,9 +5,10 @@ saved there would not be a state the run was ever in. So a signal handler only *
 (``StopRequests.request``); the train loop (``protocols.train_loop.train``) looks after each step,
 saves the checkpoint of that step and then runs the request's action (requeue the job, stop the
 cell). A SLURM job begins waiting before its cell starts up (``protocols.slurm_job``), so a request
-during start-up waits for the first step. After the loop (the final evaluation) there is no step to
-finish: the action runs at once and the next run resumes from the last checkpoint, as after any
-interruption.
+during start-up waits for the first step. One that comes after the loop's last look is carried out
+when the loop ends, its final checkpoint saved first. After the loop (the final evaluation) there is
+no step to finish: the action runs at once and the next run resumes from that final checkpoint
+without retraining, as after any interruption.
 """
 
 from __future__ import annotations

@@ -146,16 +146,13 @@ def _quantiles(t: torch.Tensor) -> dict[str, float]:
 
 
 def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result: RunResult,
-                       log: logging.Logger, key: CellKey | None = None,
-                       stops: StopRequests | None = None) -> RunResult:
+                       log: logging.Logger, key: CellKey, stops: StopRequests | None = None) -> RunResult:
     """One run: train (with checkpoints and intermediate evaluations), then the final metrics,
     speed, diagnostics and view consistency. ``cfg["device"]`` is the resolved device
     (``protocols.cell.with_device``); ``settings`` the cell's resolved settings (``cell_settings``);
-    ``key`` the cell's identity, which its checkpoints record and match (default: the result's
-    config hash and inputs); ``stops`` the stop requests of the job the cell runs in
-    (``protocols.cell_stop``), if any."""
+    ``key`` the cell's identity (``protocols.cell.result_key``), which its checkpoints record and
+    match; ``stops`` the stop requests of the job the cell runs in (``protocols.cell_stop``), if any."""
     started = time.perf_counter()
-    key = key or CellKey(result.config_hash, inputs=result.inputs or None)
     device = torch.device(cfg["device"])
     scene = load_scene_for(cfg)
     result.data = dict(scene.meta)
@@ -180,7 +177,6 @@ def train_and_evaluate(cfg: dict, settings: CellSettings, run_dir: Path, result:
     with track_peak_memory(device) as peak:
         result.curve = train(method, scene, test_rgb, steps, clock, ev, cfg, run_dir, key, log,
                              neighbours, watch, stops)
-    _final_checkpoint(run_dir, method, steps, clock, result.curve, key, watch)
     result.steps = steps
     result.train_seconds = clock.seconds
     result.num_gaussians = method.num_gaussians()
@@ -237,19 +233,23 @@ def run_plan(desc: dict, ev: EvalConfig, scene) -> list[str]:
 def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainClock, ev: EvalConfig,
           cfg: dict, run_dir: Path, key: CellKey, log: logging.Logger,
           neighbours: NeighbourLog | None, watch: CollapseWatch, stops: StopRequests | None = None) -> list[CurvePoint]:
-    """The training loop, resumed from this config's checkpoint if there is one: the test-view
+    """The training loop, resumed from this cell's checkpoint if there is one: the test-view
     PSNR at ``ev.fractions`` of the steps, moved off opacity resets (``eval_steps``; the error-
     against-time curve, returned) and a checkpoint every ``checkpoint_every`` steps, both outside
-    the train clock (the final one is ``_final_checkpoint``'s, before the final evaluation).
+    the train clock. The trained state is the last checkpoint, saved before the loop returns (so
+    before the final evaluation: a kill there resumes without retraining, and rendering and PLY
+    export read it; a run resumed from it, or a PLY's 0-step evaluation resumed, has it already).
     ``neighbours`` counts the cells running on this machine every 10 steps; ``watch`` follows the
     Gaussian count (``protocols.collapse``; its history is kept in the checkpoints). A stop request
     (``stops``: a signal to the cell's job) is carried out after the step it came in, that step's
-    checkpoint saved first."""
-    progress = _load_checkpoint(run_dir, method, key, log) or \
-        {"step": 0, "train_seconds": 0.0, "curve": []}
+    checkpoint saved first; one that comes after the last step's look, once the final checkpoint
+    is saved."""
+    loaded = _load_checkpoint(run_dir, method, key, log)
+    progress = loaded or {"step": 0, "train_seconds": 0.0, "curve": []}
     if progress.get("collapse_watch"):
         watch.restore(progress["collapse_watch"])
     start = int(progress["step"])
+    saved = start if loaded else None   # the step of the checkpoint in force
     clock.seconds = float(progress["train_seconds"])
     curve = [CurvePoint(**c) for c in progress["curve"]]
     if start:
@@ -274,6 +274,7 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
         stop = stops.take() if stops is not None else None
         if (every and done % every == 0 and done < steps) or stop is not None:
             _checkpoint(run_dir, method, done, clock, curve, key, watch)
+            saved = done
         if stop is not None:
             log.info("step %d: stopping for %s; checkpoint saved", done, stop.reason)
             stop.action()
@@ -288,6 +289,8 @@ def train(method, scene, test_rgb: list[torch.Tensor], steps: int, clock: TrainC
             if curve:
                 post["test"] = f"{curve[-1].psnr:.2f}"
             bar.set_postfix(post, gs=method.num_gaussians())
+    if saved != steps:   # the final state, before a late stop request acts on it (stops.end)
+        _checkpoint(run_dir, method, steps, clock, curve, key, watch)
     if stops is not None:
         stops.end()
     bar.close()
@@ -300,23 +303,6 @@ def _checkpoint(run_dir: Path, method, step: int, clock: TrainClock, curve: list
         _save_checkpoint(run_dir, method, {"step": step, "train_seconds": clock.seconds,
                                            "curve": [c.__dict__ for c in curve], **key.checkpoint_fields(),
                                            "collapse_watch": watch.to_json()})
-
-
-def _final_checkpoint(run_dir: Path, method, steps: int, clock: TrainClock, curve: list[CurvePoint],
-                      key: CellKey, watch: CollapseWatch) -> None:
-    """The trained state as the run's checkpoint, before the final evaluation: a kill during the
-    metrics, LPIPS, FPS or the consistency frames resumes from it without retraining, and later
-    rendering and PLY export read it. A run resumed from it (killed during its evaluation) has it
-    already."""
-    try:
-        ptr = json.loads((run_dir / POINTER).read_text())
-        progress = json.loads((run_dir / ptr["dir"] / "progress.json").read_text())
-        same = key.mismatch(progress.get("config_hash"), progress.get("inputs")) is None
-        if progress.get("step") == steps and same:
-            return
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    _checkpoint(run_dir, method, steps, clock, curve, key, watch)
 
 
 def final_metrics(method, scene, test_rgb: list[torch.Tensor], ev: EvalConfig, run_dir: Path,

@@ -63,3 +63,35 @@ def test_outside_the_loop_a_request_acts_at_once_and_a_late_one_when_it_ends():
     assert acted == ["now"]
     stops.end()
     assert acted == ["now", "late"] and stops.take() is None
+
+
+def test_a_request_after_the_last_steps_look_acts_once_the_final_checkpoint_is_saved(tmp_path, monkeypatch):
+    """A signal landing after the loop's last look (here: in its progress bar's last update) acts
+    when the loop ends, and the trained state is saved first: the rerun evaluates without retraining."""
+    import protocols.train_loop as loop
+
+    args = [a for a in ARGS if not a.startswith("grid.methods=")] + ["grid.methods=[3dgs]", f"out_dir={tmp_path}"]
+    stops, real = StopRequests(), loop.progress_bar
+
+    def progress_bar(total, *a, **kw):
+        bar = real(total, *a, **kw)
+        update = bar.update
+
+        def late(n=1):
+            update(n)
+            if bar.n == total:
+                stops.request("a late request", _stop)
+
+        bar.update = late
+        return bar
+
+    monkeypatch.setattr(loop, "progress_bar", progress_bar)
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        _, (payload,) = plan(compose(config_name="config", overrides=args), args)
+    with pytest.raises(KeyboardInterrupt):
+        run_cell(payload, stops=stops)
+    run = tmp_path / "patterns/circle4/3dgs/cap4/seed0"
+    assert json.loads((run / "checkpoint.json").read_text())["dir"] == "ckpt-0000012", "the final state is saved"
+    monkeypatch.setattr(loop, "progress_bar", real)
+    assert run_experiment(args)[0]["status"] == "ok"
+    assert "resumed from step 12" in (run / "log.txt").read_text()
