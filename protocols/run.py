@@ -260,13 +260,14 @@ class Prepared:
 
 
 def prepare(cfg: DictConfig, overrides: list[str]) -> Prepared:
-    """The grid planned and every check done (its settings, devices, scenes and data), before
-    anything runs or is written; a ``Refused`` names what stops it."""
+    """The grid planned and every check done (its out_dir, settings, devices, scenes and data),
+    before anything runs or is written (``cli`` calls it before Hydra writes its log in out_dir); a
+    ``Refused`` names what stops it."""
     from protocols.validate import validate_payloads
 
-    problem = out_dir_problem(Path(cfg.out_dir))
+    problem = out_dir_problem(Path(str(cfg.out_dir)))
     if problem:
-        raise SystemExit(f"nothing was run: {problem}")
+        raise Refused(f"nothing was run: {problem}")
     cells, payloads = plan(cfg, overrides)
     if cfg.report:
         from protocols.report_step import builder
@@ -431,11 +432,7 @@ def cli(argv: list[str] | None = None) -> int:
         from hydra import initialize_config_dir
 
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-            cfg = compose_checked(args)
-            problem = out_dir_problem(Path(str(cfg.out_dir)))   # before Hydra writes its log there
-            if problem:
-                raise Refused(f"nothing was run: {problem}")
-            prepared = prepare(cfg, args)
+            prepared = prepare(compose_checked(args), args)   # before Hydra writes its log in out_dir
         _under_hydra(args, lambda: _finish(lambda: run_prepared(prepared)))
     except Refused as e:
         print(f"error: {e.message}", file=sys.stderr, flush=True)
