@@ -15,6 +15,7 @@ import subprocess
 from pathlib import Path
 from typing import Any, Callable
 
+from protocols.refused import Refused
 from protocols.slurm_settings import SlurmSettings, partition_gpus, refusal
 from protocols.slurm_watch import SlurmQueries, Waiting, last_words, wait
 
@@ -36,10 +37,10 @@ def run_on_slurm(fn: Callable[[Payload], Summary], payloads: list[Payload], sect
     try:
         s = SlurmSettings.of(section)
     except ValueError as e:
-        raise SystemExit(f"invalid config, nothing was run: {e}") from None
+        raise Refused(f"invalid config, nothing was run: {e}") from None
     missing = [c for c in ("sbatch", "srun", "squeue", "scontrol") if shutil.which(c) is None]
     if missing:
-        raise SystemExit(f"executor.kind=slurm: {', '.join(missing)} not found on this machine; run the sweep where "
+        raise Refused(f"executor.kind=slurm: {', '.join(missing)} not found on this machine; run the sweep where "
                          "SLURM's commands are (a login node of the cluster), or use executor.kind=local")
     if s.lead_s() < s.signal_lead_s:
         note(f"slurm: executor.slurm.signal_lead_s={s.signal_lead_s} does not fit a {s.timeout_min}-min limit: jobs "
@@ -92,7 +93,7 @@ def _submit(fn, payloads: list[Payload], s: SlurmSettings, folder: str, waiting:
                 jobs = ex.submit_array([CellJob(fn, payloads[i], limits) for i in idx])
         except submitit.core.utils.FailedJobError as e:
             devices = sorted({str(payloads[i]["config"].get("device", "auto")) for i in idx})
-            raise SystemExit(f"invalid config, nothing was run: {refusal(str(e), s, gpus, devices)}") from None
+            raise Refused(f"invalid config, nothing was run: {refusal(str(e), s, gpus, devices)}") from None
         waiting += [Waiting(i, payloads[i]["key"], j) for i, j in zip(idx, jobs)]
         array = str(jobs[0].job_id).split("_")[0]
         where = f"partition {s.partition}" if s.partition else "the default partition"

@@ -282,6 +282,18 @@ def test_without_slurm_commands_the_sweep_says_where_to_run(tmp_path, monkeypatc
     assert str(e.value).startswith("executor.kind=slurm: sbatch, srun, squeue, scontrol not found on this machine")
 
 
+def test_a_slurm_refusal_exits_with_status_2_in_one_block(tmp_path, monkeypatch, capsys):
+    """As every refusal of smgs run does (protocols.refused), not as a failed run (1)."""
+    from protocols.run import cli
+
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with pytest.raises(SystemExit) as e:
+        cli(PATTERN[:-2] + ["grid.methods=[3dgs]", "dataset.steps=2", f"out_dir={tmp_path}"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("error: executor.kind=slurm: sbatch, srun, squeue, scontrol not found")
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+
+
 def test_preempted_resumes_cancelled_and_killed_fail_within_2_minutes(sweeps):
     c, root, acted = sweeps["c"], sweeps["root"], sweeps["acted"]
     rc = c.wait()
