@@ -17,6 +17,12 @@ from dataclasses import dataclass
 from typing import Callable
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM as an interruption: the running cell stops as on Ctrl-C (its last checkpoint stays, the
+    next run resumes from it) and the process ends with a sentence, not a signal's default death
+    (``protocols.executors.on_sigterm``; in a SLURM job at a step boundary, ``protocols.slurm_job``)."""
+
+
 @dataclass
 class StopRequest:
     reason: str                  # for the cell's log: "the time limit's warning (SIGUSR2)"

@@ -13,6 +13,7 @@ import os
 import traceback
 from typing import Any, Callable
 
+from protocols.cell_stop import Terminated
 from protocols.progress import cell_status, progress
 
 Payload = dict[str, Any]
@@ -30,11 +31,6 @@ def _died(payload: Payload, err: BaseException | str, what: str = "worker died: 
     if log and os.path.isfile(log):   # what the cell logged before its worker died
         out["log"] = log
     return out
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM as an interruption: the running cell stops as on Ctrl-C (its last checkpoint stays, the
-    next run resumes from it) and the process ends with a sentence, not a signal's default death."""
 
 
 def on_sigterm(signum: int, frame: object) -> None:

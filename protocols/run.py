@@ -20,7 +20,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from protocols.executors import Terminated, on_sigterm
+from protocols.cell_stop import Terminated
+from protocols.executors import on_sigterm
 from protocols.config_files import CONFIG_DIR, config_names, has_config
 from protocols.grid import Cell, check_path_names, expand, path_name_problem
 from protocols.grid_axes import given as _given, grid_datasets, grid_seeds, one_or_list

@@ -24,7 +24,7 @@ from typing import Any, Callable
 
 import submitit
 
-from protocols.cell_stop import StopRequests
+from protocols.cell_stop import StopRequests, Terminated
 from protocols.job_cpus import job_cpus
 
 
@@ -43,10 +43,6 @@ class JobLimits:
 
 class TimeLimitReached(RuntimeError):
     """The cell's job reached its time limit with no requeue left."""
-
-
-class Stopped(KeyboardInterrupt):
-    """SIGTERM to the job: the cell stops as on Ctrl-C (``protocols.cell.run_cell``), its checkpoint saved."""
 
 
 class CellJob(submitit.helpers.Checkpointable):
@@ -71,7 +67,7 @@ class CellJob(submitit.helpers.Checkpointable):
             if "stops" in inspect.signature(fn).parameters:
                 return fn(payload, stops=stops)
             return fn(payload)
-        except Stopped:   # its checkpoint is saved; SLURM decides whether the job runs again
+        except Terminated:   # its step's checkpoint is saved; SLURM decides whether the job runs again
             print(f"smgs: {payload.get('key')} stopped by SIGTERM", file=sys.stderr, flush=True)
             raise SystemExit(128 + signal.SIGTERM) from None
 
@@ -105,4 +101,4 @@ class CellJob(submitit.helpers.Checkpointable):
 
 
 def _terminate() -> None:
-    raise Stopped()
+    raise Terminated()   # as a local worker's SIGTERM: the cell stops as on Ctrl-C (protocols.cell.run_cell)
