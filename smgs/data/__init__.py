@@ -13,30 +13,14 @@ from smgs.data.registry import check_scene, get_dataset, load_scene
 from smgs.data.rules import GENERIC_RULES
 from smgs.data.images import ResolutionRule
 from smgs.data.errors import DatasetNotFoundError, MissingImageError, SceneContractError, SceneFormatError
+from smgs.lazy import lazy_names
 
-_SCENE = ("Scene", "View", "camera_extent", "split_every")
-
-
-def __getattr__(name: str):
-    # Lazy re-exports so that ``import smgs.data`` does not import pycolmap or OpenCV, nor torch (the
-    # scene's tensors) for what only names datasets and formats (``smgs list``, ``--help``).
-    if name in _SCENE:
-        from smgs.data import scene
-        return getattr(scene, name)
-    if name == "check_scene_contract":
-        from smgs.data.contract import check_scene_contract
-        return check_scene_contract
-    if name == "load_colmap":
-        from smgs.data.colmap import load_colmap
-        return load_colmap
-    if name == "load_transforms":
-        from smgs.data.transforms import load_transforms
-        return load_transforms
-    if name == "make_procedural_scene":
-        from smgs.data.procedural import make_procedural_scene
-        return make_procedural_scene
-    raise AttributeError(f"module 'smgs.data' has no attribute {name!r}")
-
+# Lazy re-exports so that ``import smgs.data`` does not import pycolmap or OpenCV, nor torch (the
+# scene's tensors) for what only names datasets and formats (``smgs list``, ``--help``).
+__getattr__ = lazy_names("smgs.data", {
+    **dict.fromkeys(("Scene", "View", "camera_extent", "split_every"), "scene"),
+    "check_scene_contract": "contract", "load_colmap": "colmap", "load_transforms": "transforms",
+    "make_procedural_scene": "procedural"})
 
 __all__ = ["Scene", "View", "camera_extent", "split_every", "ResolutionRule", "SceneFormat", "SceneRequest",
            "DatasetSpec", "GENERIC_RULES", "DATA_ROOT_ENV", "get_dataset", "resolve_data_root",
