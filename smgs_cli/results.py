@@ -8,7 +8,7 @@ import argparse
 import sys
 from pathlib import Path
 
-FORMATS = ("csv", "parquet", "json")   # smgs.cells.table.FORMATS (not imported: --help stays fast)
+from smgs.cells import table   # light: pandas loads when a table is made
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -18,16 +18,13 @@ def main(argv: list[str] | None = None) -> int:
         "smgs.results(RUNS_DIR), smgs.curves(RUNS_DIR) (docs/reports.md, Results as data)."))
     ap.add_argument("runs_dir", type=Path, nargs="+", help="directories searched recursively for results.json")
     ap.add_argument("--out", type=Path, default=None, help="file to write (default: stdout; parquet needs a file)")
-    ap.add_argument("--format", choices=FORMATS, default=None,
+    ap.add_argument("--format", choices=table.FORMATS, default=None,
                     help="default: from the --out suffix (.csv, .parquet, .json), else csv")
     which = ap.add_mutually_exclusive_group()
     which.add_argument("--per-view", action="store_true", help="one row per cell and test view")
     which.add_argument("--curves", action="store_true", help="the error-against-time curves, one row per evaluation")
     args = ap.parse_args(argv)
-    from smgs.cells import table
-
-    fmt = args.format or (args.out.suffix[1:].lower() if args.out and args.out.suffix[1:].lower() in FORMATS
-                          else "csv")
+    fmt = args.format or table.format_for(args.out)
     if fmt == "parquet" and args.out is None:
         print("error: --format parquet writes a file: give --out FILE.parquet", file=sys.stderr)
         return 2

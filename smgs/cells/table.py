@@ -148,12 +148,17 @@ def encode(df: "pd.DataFrame", fmt: str) -> bytes:
     raise ValueError(f"unknown format {fmt!r}: one of {', '.join(FORMATS)}")
 
 
+def format_for(path: Path | str | None) -> str:
+    """The format a file's suffix names (.csv, .parquet, .json), else csv (also for no file: stdout)."""
+    suffix = Path(path).suffix[1:].lower() if path is not None else ""
+    return suffix if suffix in FORMATS else "csv"
+
+
 def write(df: "pd.DataFrame", path: Path | str, fmt: str | None = None) -> Path:
     """Write ``df`` to ``path`` whole or not at all (``smgs.atomic``); ``fmt`` defaults to the suffix of
-    ``path`` (.csv, .parquet, .json), else csv."""
+    ``path`` (``format_for``)."""
     path = Path(path)
-    fmt = fmt or (path.suffix[1:].lower() if path.suffix[1:].lower() in FORMATS else "csv")
-    atomic_write_bytes(path, encode(df, fmt))
+    atomic_write_bytes(path, encode(df, fmt or format_for(path)))
     return path
 
 
