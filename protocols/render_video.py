@@ -102,13 +102,13 @@ def rebuild(run: FinishedRun, device: str):
 
 def path_cameras(run: FinishedRun, scene, path: str) -> list:
     """The cameras of ``path`` for ``run`` (module docstring)."""
-    from protocols.run_video import read_trajectory, video_cameras
+    from protocols.run_video import TRAJECTORY_FILE, read_trajectory, video_cameras
 
     if path == "test":
         if not scene.test:
             raise ValueError(f"{run.run_dir}: the scene {scene.name} has no test views")
         return [v.camera for v in scene.test]
-    traj = run.run_dir / "trajectory.json"
+    traj = run.run_dir / TRAJECTORY_FILE
     cams = read_trajectory(traj) if traj.is_file() else list(scene.trajectory or [])
     if not cams:
         raise ValueError(f"{run.run_dir}: no video trajectory: the scene {scene.name} is flat (one camera looking at "

@@ -13,6 +13,8 @@ from protocols.sections import EvalConfig
 from smgs.metrics.result import Missing
 
 VIDEO_DIR = "video"
+TRAJECTORY_FILE = "trajectory.json"
+BETWEEN = 128   # frames between consecutive test cameras (paper supp. Sec. 7)
 
 
 def video_cameras(cameras: Sequence, max_width: int | None) -> list:
@@ -24,9 +26,29 @@ def video_cameras(cameras: Sequence, max_width: int | None) -> list:
     return cams
 
 
+def save_trajectory(run_dir: Path, scene) -> list:
+    """The cameras of the run's view-consistency path, saved as ``RUN_DIR/trajectory.json``: the
+    scene's own (``"source": "scene"``), else ``BETWEEN`` frames between consecutive test cameras
+    (``smgs.data.trajectory.Trajectory``); ``read_trajectory`` reads it back."""
+    import json
+
+    from smgs.atomic import atomic_write_text
+    from smgs.data.trajectory import interpolate_trajectory
+
+    if scene.trajectory:
+        cams = list(scene.trajectory)
+        atomic_write_text(run_dir / TRAJECTORY_FILE, json.dumps(
+            {"source": "scene", "cameras": [{"K": c.K.tolist(), "viewmat": c.viewmat.tolist(),
+                                             "width": c.width, "height": c.height} for c in cams]}))
+        return cams
+    traj = interpolate_trajectory([v.camera for v in scene.test], BETWEEN)
+    traj.save(run_dir / TRAJECTORY_FILE)
+    return traj.cameras()
+
+
 def read_trajectory(path: Path) -> list:
-    """The cameras of a run's ``trajectory.json``: a scene's own path (``"source": "scene"``) or an
-    interpolated one (``smgs.data.trajectory.Trajectory``)."""
+    """The cameras of a run's ``trajectory.json`` (``save_trajectory``): a scene's own path
+    (``"source": "scene"``) or an interpolated one (``smgs.data.trajectory.Trajectory``)."""
     import json
 
     from smgs.camera import Camera

@@ -27,7 +27,7 @@ from protocols.live_cells import NeighbourLog
 from protocols.progress import progress as progress_bar
 from protocols.results import POINTER, CurvePoint, RunResult
 from protocols.run_settings import CellSettings, asked_renderer
-from protocols.run_video import end_video, start_video, video_cameras
+from protocols.run_video import end_video, save_trajectory, start_video, video_cameras
 from protocols.view_images import save_popping_strip, save_view_images
 from smgs.env import versions
 from smgs.identity import CellKey
@@ -379,18 +379,8 @@ def consistency(method, scene, run_dir: Path, ev: EvalConfig, device: torch.devi
     as scored, are encoded as the run's videos (``protocols.run_video``). ``name``: the cell's, for
     its progress line."""
     from smgs.metrics.consistency.score import TABLE_STEP, consistency_row
-    from smgs.data.trajectory import interpolate_trajectory
 
-    if scene.trajectory:
-        traj = list(scene.trajectory)
-        atomic_write_text(run_dir / "trajectory.json", json.dumps(
-            {"source": "scene", "cameras": [{"K": c.K.tolist(), "viewmat": c.viewmat.tolist(),
-                                             "width": c.width, "height": c.height} for c in traj]}))
-    else:
-        traj = interpolate_trajectory([v.camera for v in scene.test], 128)
-        traj.save(run_dir / "trajectory.json")
-        traj = traj.cameras()
-    traj = video_cameras(traj, ev.consistency_max_width)   # at most max_width wide
+    traj = video_cameras(save_trajectory(run_dir, scene), ev.consistency_max_width)   # at most max_width wide
 
     no_pop = _no_popping_ratio(method, ev, device, renderer)
 
