@@ -189,9 +189,7 @@ class CpuExtension:
         ``SMGS_CPU_ISA`` that names no path (a ValueError: a typo must not fall back to the 100-1000x
         slower reference renderer, as an unknown ``renderer.kernels`` does not)."""
         try:
-            isa = select_isa()
-        except ValueError:
-            raise
+            isa = select_isa()   # its ValueError (no such path) propagates
         except RuntimeError as exc:   # an SMGS_CPU_ISA this host cannot run
             log.warning("smgs cpu %s unavailable: %s", self.what, exc)
             return False
