@@ -278,6 +278,10 @@ def prepare(cfg: DictConfig, overrides: list[str]) -> Prepared:
         except ValueError as e:
             raise Refused(f"invalid config, nothing was run: {e}") from None
     check_devices(payloads, str(cfg.executor.kind))
+    if str(cfg.executor.kind) == "slurm":   # its settings and commands (sbatch's own word comes at submission)
+        from protocols.slurm_sweep import checked_settings
+
+        checked_settings(OmegaConf.to_container(cfg.executor.slurm, resolve=True))
     validate_payloads(payloads)
     _preflight(payloads)
     return Prepared(cfg, cells, payloads)

@@ -34,14 +34,7 @@ def run_on_slurm(fn: Callable[[Payload], Summary], payloads: list[Payload], sect
     (``died(payload, why)`` makes the summary of one whose job ended without a result)."""
     if not payloads:
         return
-    try:
-        s = SlurmSettings.of(section)
-    except ValueError as e:
-        raise Refused(f"invalid config, nothing was run: {e}") from None
-    missing = [c for c in ("sbatch", "srun", "squeue", "scontrol") if shutil.which(c) is None]
-    if missing:
-        raise Refused(f"executor.kind=slurm: {', '.join(missing)} not found on this machine; run the sweep where "
-                         "SLURM's commands are (a login node of the cluster), or use executor.kind=local")
+    s = checked_settings(section)
     if s.lead_s() < s.signal_lead_s:
         note(f"slurm: executor.slurm.signal_lead_s={s.signal_lead_s} does not fit a {s.timeout_min}-min limit: jobs "
              f"are warned {s.lead_s()} s before it")
@@ -69,6 +62,21 @@ def run_on_slurm(fn: Callable[[Payload], Summary], payloads: list[Payload], sect
     except BaseException:   # Ctrl-C, SIGTERM, a refusal: the jobs stop too (each saves its step's checkpoint)
         _cancel([w.job_id for w in waiting if w.index not in finished])
         raise
+
+
+def checked_settings(section: dict) -> SlurmSettings:
+    """The settings of ``executor.slurm`` on a machine that has SLURM's commands, else ``Refused``
+    naming the key or the commands and the fix (``protocols.run.prepare`` asks before anything is
+    written)."""
+    try:
+        s = SlurmSettings.of(section)
+    except ValueError as e:
+        raise Refused(f"invalid config, nothing was run: {e}") from None
+    missing = [c for c in ("sbatch", "srun", "squeue", "scontrol") if shutil.which(c) is None]
+    if missing:
+        raise Refused(f"executor.kind=slurm: {', '.join(missing)} not found on this machine; run the sweep where "
+                      "SLURM's commands are (a login node of the cluster), or use executor.kind=local")
+    return s
 
 
 def _submit(fn, payloads: list[Payload], s: SlurmSettings, folder: str, waiting: list[Waiting]) -> None:

@@ -282,16 +282,23 @@ def test_without_slurm_commands_the_sweep_says_where_to_run(tmp_path, monkeypatc
     assert str(e.value).startswith("executor.kind=slurm: sbatch, srun, squeue, scontrol not found on this machine")
 
 
-def test_a_slurm_refusal_exits_with_status_2_in_one_block(tmp_path, monkeypatch, capsys):
+def test_a_slurm_refusal_exits_with_status_2_in_one_block_before_hydra_writes_its_log(tmp_path, monkeypatch,
+                                                                                      capsys):
     """As every refusal of smgs run does (protocols.refused), not as a failed run (1)."""
     from protocols.run import cli
 
     monkeypatch.setenv("PATH", str(tmp_path))
-    with pytest.raises(SystemExit) as e:
-        cli(PATTERN[:-2] + ["grid.methods=[3dgs]", "dataset.steps=2", f"out_dir={tmp_path}"])
-    err = capsys.readouterr().err
-    assert e.value.code == 2 and err.startswith("error: executor.kind=slurm: sbatch, srun, squeue, scontrol not found")
-    assert err.count("\n") == 1 and "Traceback" not in err, err
+    out = tmp_path / "runs"
+    for setting, said in (("executor.slurm.timeout_min=0", "error: invalid config, nothing was run: "
+                                                           "executor.slurm.timeout_min=0: give a whole number >= 1"),
+                          ("executor.slurm.cpus_per_task=1", "error: executor.kind=slurm: sbatch, srun, squeue, "
+                                                             "scontrol not found")):
+        with pytest.raises(SystemExit) as e:
+            cli(PATTERN[:-2] + [setting, "grid.methods=[3dgs]", "dataset.steps=2", f"out_dir={out}"])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err.startswith(said), err
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+        assert not out.exists(), "refused before anything is written"
 
 
 def test_preempted_resumes_cancelled_and_killed_fail_within_2_minutes(sweeps):
