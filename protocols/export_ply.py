@@ -19,6 +19,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is not None and len(args.run_dirs) > 1:
         ap.error("--out names one file; give one run directory with it")
     from protocols.ply import export_run   # after the arguments: --help answers without torch
+    from protocols.refused import EXIT_REFUSED
 
     failed = 0
     for run_dir in args.run_dirs:
@@ -30,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         note = "" if status == "ok" else f" (run {status}: this is its checkpoint of step {step}, not a final model)"
         print(f"{path}: step {step}{note}")
-    return 1 if failed else 0
+    return EXIT_REFUSED if failed else 0   # a run without a model to export is refused, as every refusal
 
 
 if __name__ == "__main__":

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from protocols.refused import EXIT_REFUSED
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -226,7 +228,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         info = render_video(args.run_dirs, args.path, args.out, args.device)
-    except (OSError, ValueError, RuntimeError) as e:
+    except (OSError, ValueError) as e:   # runs that cannot give the video: refused (docs/usage.md, exit status)
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_REFUSED
+    except RuntimeError as e:   # the rendering or the encoding failed
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"{info.path}: {info.frames} frames, {info.width} x {info.height}, {info.bytes / 1e3:.0f} kB "

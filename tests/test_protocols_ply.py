@@ -60,7 +60,7 @@ def test_export_command_writes_the_run_end_file_again(runs, tmp_path, capsys):
     assert export_ply.main([str(run), "--out", str(tmp_path / "again.ply")]) == 0
     assert "step 4" in capsys.readouterr().out
     assert (tmp_path / "again.ply").read_bytes() == (run / "point_cloud.ply").read_bytes()
-    assert export_ply.main([str(tmp_path)]) == 1
+    assert export_ply.main([str(tmp_path)]) == 2   # refused: nothing to export
     assert "no checkpoint.json" in capsys.readouterr().err
 
 

@@ -197,7 +197,7 @@ def test_smgs_render_refuses_what_it_cannot_show(tree, tmp_path, capsys):
              ([failed], "the run is failed (boom): it has no final model to render"),
              ([pattern], "no video trajectory: the scene circle4 is flat")]
     for dirs, message in cases:
-        assert main(["render", *map(str, dirs), "--out", str(tmp_path / "x.webm")]) == 1
+        assert main(["render", *map(str, dirs), "--out", str(tmp_path / "x.webm")]) == 2   # refused
         err = capsys.readouterr().err
         assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "x.webm").exists()
