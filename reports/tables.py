@@ -482,7 +482,3 @@ def table5(runs: list[RunResult], ctx: Context) -> Section:
                                 notes=mix_notes(dsr, "This block"), seeds=True))
     _add(sec, table5_paired([r for _, r, _ in rows], cols[:1], ctx.paper))
     return sec
-
-
-def failed_runs(runs: list[RunResult]) -> list[RunResult]:
-    return [r for r in runs if r.status != "ok"]

@@ -186,7 +186,7 @@ PLAYERS_GUIDE = (
     "(8-bit), side by side for one configuration at a time, in step: one play/pause and one timeline for all. "
     "The strip under the timeline is the flow-warped MSE of the pair (i → i+{step}) ending at each frame, one row "
     "per method (black 0 → red → yellow → white at the highest of the configuration; a blank cell: no pair ends there or none is scored); "
-    "▼ marks the worst pair of all, a white tick each method's worst. Click the strip to go to that frame. "
+    "▼ marks the worst pair of all, a blue tick each method's worst. Click the strip to go to that frame. "
     "\"Warped error\" shows instead, over each frame dimmed, |frame i warped onto frame i+{step} − frame i+{step}| "
     "(mean over RGB; black 0 → red → yellow → white at ≥ 0.25, the scale of the test views' maps); darker still: "
     "pixels not scored (occluded, out of view, within 20 px of the border).")
