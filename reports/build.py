@@ -124,7 +124,8 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
         recs = sec.csv_records()
         if recs:
             files[f"tables/{sec.name}.csv"] = _csv(recs)
-    files["tables/runs.csv"] = _csv(_run_records(loaded))
+    run_records = _run_records(loaded)
+    files["tables/runs.csv"] = _csv(run_records)
     for p in [*plots, *diag_plots, *(p for ps in section_plots.values() for p in ps)]:
         files[f"plots/{p.name}"] = p.png
 
@@ -133,8 +134,8 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
     md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
                    machine, section_plots)
     files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
-                              plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
-                              csv_link=lambda name: _link(files, name), machine=machine).encode()
+                              plot_error=plot_error, diag=diag, stab=stab, run_records=run_records,
+                              csv_link=lambda name: _link(files, name), machine=machine, cells=ctx.cells).encode()
     _write(out, files, md)
     return out / REPORT
 

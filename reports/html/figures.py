@@ -16,7 +16,7 @@ from pathlib import Path
 from reports.diagnostics import PARAM_LABELS, param_names, param_groups, param_summary
 from reports.html.escape import plotly_text as pt
 from reports.paper import budget_rank, dataset_rank, method_label, method_rank, scene_rank
-from reports.aggregate import Band, seed_bands
+from reports.aggregate import Band, Cells, seed_bands
 from reports.plots import Point, color, pareto_front, panel_name
 from reports.runs import Run, budget_label, is_pattern
 from reports.tables import row_order
@@ -126,8 +126,8 @@ def _point_runs(runs: list[Run]) -> dict[tuple, list[Run]]:
     return out
 
 
-def pareto_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
-    fps_pts, gs_pts = tradeoff_points([x.r for x in runs])
+def pareto_figures(runs: list[Run], runs_dir: Path, cells: Cells | None = None) -> list[Figure]:
+    fps_pts, gs_pts = tradeoff_points([x.r for x in runs], cells)
     behind = _point_runs(runs)
     figs = []
     for pts, key, xlabel, higher, what in ((fps_pts, "fps", "render FPS", True, "higher PSNR at higher FPS"),

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from protocols.results import RunResult
+from reports.aggregate import Cells
 from reports.environment import environment_rows, this_machine
 from reports.html.escape import esc, script_json
 from reports.html.figures import Figure, consistency_figures, params_figure, pareto_figures, run_name, time_figures
@@ -48,7 +49,9 @@ def plotly_js() -> tuple[str | None, str | None]:
 def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: str | None,
                 tables: Sequence[Section], plot_error: str | None, diag: Section, stab: Section,
                 run_records: list[dict], csv_link: Callable[[str], str | None],
-                machine: dict[str, str] | None = None) -> str:
+                machine: dict[str, str] | None = None, cells: Cells | None = None) -> str:
+    """The page; ``cells``: the runs' results table where the caller made it (the trade-off points are
+    computed from it, as report.md's are)."""
     runs = loaded.runs
     results = [x.result for x in runs]
     used: set[str] = set()
@@ -73,7 +76,7 @@ def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: s
 
     body.append(f'<h2 id="{ids("tradeoff")}">Error against run time</h2>')
     try:
-        time_figs, pareto_figs = time_figures(runs, runs_dir), pareto_figures(runs, runs_dir)
+        time_figs, pareto_figs = time_figures(runs, runs_dir), pareto_figures(runs, runs_dir, cells)
     except Exception as e:  # noqa: BLE001 - the rest of the page still matters
         time_figs, pareto_figs, plot_error = [], [], plot_error or f"{type(e).__name__}: {one_line(str(e), 300)}"
     if time_figs or pareto_figs:
