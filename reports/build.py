@@ -35,7 +35,7 @@ from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
 from reports.popping import popping_section, wants_popping
-from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
+from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, presets_summary
 from reports.stability_section import compute_stability, stability_section
 from reports.table_model import SEEDS_GUIDE, Section, md_text
 from reports.tables import Context, table1, table2, table3, table4, table5
@@ -187,12 +187,9 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
             if len(loaded.roots) > 1 else f"Runs directory: {md_text(runs_dir.resolve())}")
            + f" · built {when} · {len(runs)} results ("
            + ", ".join(f"{n} {s}" for s, n in sorted(status.items())) + ")", ""]
-    presets = Counter(r.preset for r in runs)
+    presets = presets_summary(runs)
     if presets:
-        out.append("Protocol presets: " + "; ".join(
-            md_text(f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})")
-            for p, n in sorted(presets.items())) + ".")
-        out.append("")
+        out += [f"Protocol presets: {md_text(presets)}.", ""]
     out.append(f"Paper's numbers: {md_text(paper_error)}." if paper_error else
                "Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).")
     out += ["", READING_GUIDE, "", SEEDS_GUIDE, ""]

@@ -10,6 +10,7 @@ computed from the results table in reports/aggregate.py; the runs are read by ``
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from typing import Iterable
 
@@ -59,6 +60,14 @@ def preset_description(runs: Iterable[RunResult]) -> str:
             widths.append(w)
     parts = [f"{' or '.join(str(n) for n in sorted(steps))} steps"] if steps else []
     return ", ".join(parts + [f"images ≤ {' or '.join(str(w) for w in sorted(widths))} px wide"] * bool(widths))
+
+
+def presets_summary(runs: list[RunResult]) -> str:
+    """Each protocol preset of ``runs`` with its count of runs and what a reduced one changes, as the
+    report's header says it: "cpu (8 runs, 3000 steps, images ≤ 400 px wide); paper (2 runs)"."""
+    presets = Counter(r.preset for r in runs)
+    return "; ".join(f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})"
+                     for p, n in sorted(presets.items()))
 
 
 def budget_label(r: RunResult) -> str:

@@ -22,7 +22,7 @@ from reports.html.figures import Figure, consistency_figures, params_figure, par
 from reports.html.images import strips, viewers
 from reports.html.tables_html import plain_table, records_table, section_html
 from reports.html.videos import players
-from reports.runs import LoadedRuns, one_line, preset_description
+from reports.runs import LoadedRuns, one_line, presets_summary
 from reports.table_model import SEEDS_GUIDE, Section
 
 ASSETS = Path(__file__).resolve().parent / "assets"
@@ -148,11 +148,9 @@ def _header(runs_dir: Path, runs: list[RunResult], paper_error: str | None) -> s
     out = ["<h1>smgs report</h1>",
            f"<p>Runs directory: <code>{esc(runs_dir.resolve())}</code> · built {when} · {len(runs)} results ("
            + esc(", ".join(f"{n} {s}" for s, n in sorted(status.items()))) + ")</p>"]
-    presets = Counter(r.preset for r in runs)
+    presets = presets_summary(runs)
     if presets:
-        out.append("<p>Protocol presets: " + esc("; ".join(
-            f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})"
-            for p, n in sorted(presets.items()))) + ".</p>")
+        out.append(f"<p>Protocol presets: {esc(presets)}.</p>")
     out.append(f"<p>Paper's numbers: {esc(paper_error)}.</p>" if paper_error else
                "<p>Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).</p>")
     out.append("<p>How to read the tables: each value of ours is followed by the paper's value and the difference "
