@@ -245,8 +245,11 @@ class DatasetMeans:
     values: dict[RowKey, dict[str, Value]]  # row -> metric -> mean over common scenes
     subset_note: dict[RowKey, str]
     extra_scenes: list[str]
-    runs: list[RunResult]
     row_runs: dict[RowKey, list[RunResult]]  # row -> its runs
+
+    @property
+    def runs(self) -> list[RunResult]:
+        return [r for rs in self.row_runs.values() for r in rs]
 
 
 def dataset_means(cells: Cells, dataset: str, names: list[str]) -> DatasetMeans:
@@ -284,7 +287,7 @@ def dataset_means(cells: Cells, dataset: str, names: list[str]) -> DatasetMeans:
                              f"the paper's value is over all {len(expected)}")
             continue
         values[k] = {m: Value.absent(why) for m in names}
-    return DatasetMeans(dataset, expected, common, values, subset, extra, runs, row_runs)
+    return DatasetMeans(dataset, expected, common, values, subset, extra, row_runs)
 
 
 def table2(runs: list[RunResult], ctx: Context) -> Section:
