@@ -35,7 +35,7 @@ from reports.html import html_report
 from reports.paper import load_paper
 from reports.plots import Plot, pareto_plots, time_curves
 from reports.popping import popping_section, wants_popping
-from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, preset_description
+from reports.runs import LoadedRuns, is_pattern, load_runs, one_line, pattern_cap, presets_summary
 from reports.stability_section import compute_stability, stability_section
 from reports.table_model import SEEDS_GUIDE, Section, md_text
 from reports.tables import Context, table1, table2, table3, table4, table5
@@ -124,7 +124,8 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
         recs = sec.csv_records()
         if recs:
             files[f"tables/{sec.name}.csv"] = _csv(recs)
-    files["tables/runs.csv"] = _csv(_run_records(loaded))
+    run_records = _run_records(loaded)
+    files["tables/runs.csv"] = _csv(run_records)
     for p in [*plots, *diag_plots, *(p for ps in section_plots.values() for p in ps)]:
         files[f"plots/{p.name}"] = p.png
 
@@ -133,8 +134,8 @@ def _build(runs_dir: Path, out: Path, stability: list[dict] | str | None, also: 
     md = _markdown(runs_dir, loaded, paper.error, sections, plots, plot_error, diag, diag_plots, stab, runs, files,
                    machine, section_plots)
     files[HTML] = html_report(runs_dir=runs_dir, out=out, loaded=loaded, paper_error=paper.error, tables=sections,
-                              plot_error=plot_error, diag=diag, stab=stab, run_records=_run_records(loaded),
-                              csv_link=lambda name: _link(files, name), machine=machine).encode()
+                              plot_error=plot_error, diag=diag, stab=stab, run_records=run_records,
+                              csv_link=lambda name: _link(files, name), machine=machine, cells=ctx.cells).encode()
     _write(out, files, md)
     return out / REPORT
 
@@ -186,12 +187,9 @@ def _markdown(runs_dir: Path, loaded: LoadedRuns, paper_error: str | None, secti
             if len(loaded.roots) > 1 else f"Runs directory: {md_text(runs_dir.resolve())}")
            + f" · built {when} · {len(runs)} results ("
            + ", ".join(f"{n} {s}" for s, n in sorted(status.items())) + ")", ""]
-    presets = Counter(r.preset for r in runs)
+    presets = presets_summary(runs)
     if presets:
-        out.append("Protocol presets: " + "; ".join(
-            md_text(f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})")
-            for p, n in sorted(presets.items())) + ".")
-        out.append("")
+        out += [f"Protocol presets: {md_text(presets)}.", ""]
     out.append(f"Paper's numbers: {md_text(paper_error)}." if paper_error else
                "Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).")
     out += ["", READING_GUIDE, "", SEEDS_GUIDE, ""]

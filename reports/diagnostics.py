@@ -45,27 +45,16 @@ def k_max(r: RunResult) -> str:
     return ("not recorded" if v is None else str(v)) + ("" if scope == "pixel" else f" ({scope})")
 
 
-def _coverage(r: RunResult) -> float | None:
-    v = (r.diagnostics or {}).get("frac_within_kmax")
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
-
-
-def coverage_table(runs: list[RunResult], ctx: Context) -> tuple[Table | None, list[str]]:
-    ok = [r for r in runs if r.status == "ok" and _coverage(r) is not None]
+def coverage_table(ctx: Context) -> tuple[Table | None, list[str]]:
+    f, cov = ctx.cells.frame, ctx.cells.quantity("frac_within_kmax")
+    has, pattern = cov["reason"].isna(), f["dataset"].isin(PATTERN_DATASETS)
     notes: list[str] = []
-    pats = [r for r in ok if is_pattern(r)]
-    if pats:
-        vals = sorted(_coverage(r) for r in pats)
-        notes.append(f"2D pattern fits ({len(pats)} runs): coverage from {percent(vals[0])} to {percent(vals[-1])} "
-                     f"(median {percent(statistics.median(vals))}); a capped fit has few splats per ray.")
-    f = ctx.cells.frame
+    pats = cov.loc[has & pattern, "value"]
+    if len(pats):
+        notes.append(f"2D pattern fits ({len(pats)} runs): coverage from {percent(pats.min())} to {percent(pats.max())} "
+                     f"(median {percent(pats.median())}); a capped fit has few splats per ray.")
     keys = ["dataset", "scene", "method", "budget", "preset"]
-    rows_ = ctx.cells.rows(~f["dataset"].isin(PATTERN_DATASETS)
-                           & ctx.cells.quantity("frac_within_kmax")["reason"].isna())
+    rows_ = ctx.cells.rows(~pattern & has)
     if not len(rows_):
         return None, notes
     means = seed_means(ctx.cells, keys, ["frac_within_kmax"], rows_)   # seeds of different configs: not pooled
@@ -198,13 +187,15 @@ def diagnostics_section(runs: list[RunResult], ctx: Context) -> tuple[Section, l
     """"Softmax-GS diagnostics" with two sub-sections (k_max coverage, learned parameters), each with
     its CSV, and the parameters' box plot."""
     sec = Section("diagnostics", "Softmax-GS diagnostics")
-    cov, cov_notes = coverage_table(runs, ctx)
+    cov, cov_notes = coverage_table(ctx)
     par = params_table(runs, ctx)
-    softmax = [r for r in runs if r.status == "ok" and r.method in ("softmax_gs", "softmax_only")]
-    lacking = [r for r in softmax if _coverage(r) is None]
-    if lacking:
+    f = ctx.cells.frame
+    lacking = f[(f["status"] == "ok") & f["method"].isin(["softmax_gs", "softmax_only"])
+                & ctx.cells.quantity("frac_within_kmax")["reason"].notna()]
+    if len(lacking):
+        x = lacking.iloc[0]
         cov_notes.append(f"{len(lacking)} ok softmax run(s) record no frac_within_kmax, e.g. "
-                         f"{lacking[0].dataset}/{lacking[0].scene}/{lacking[0].method}/{lacking[0].budget}.")
+                         f"{x['dataset']}/{x['scene']}/{x['method']}/{x['budget']}.")
     if cov is None and par is None:
         sec.empty_reason = ("no run records diagnostics (frac_within_kmax, params); they come from methods with "
                             "GEF or softmax competition.") + (" " + " ".join(cov_notes) if cov_notes else "")

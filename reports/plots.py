@@ -20,9 +20,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from protocols.results import RunResult
-from reports.aggregate import Band, seed_bands  # noqa: F401 - the seeds' band of a curve, re-exported for the page
+from reports.aggregate import seed_bands
 from reports.paper import budget_rank, dataset_label, dataset_rank, method_label, method_rank, scene_rank
-from reports.runs import Value, is_pattern, pattern_cap
+from reports.runs import Value, budget_label
 
 PANELS_PER_FIGURE = 9
 COLORS = {"3dgs": "#1f77b4", "gef_only": "#2ca02c", "softmax_only": "#ff7f0e", "softmax_gs": "#d62728"}
@@ -99,15 +99,15 @@ def time_curves(runs: list[RunResult]) -> list[Plot]:
 
 
 def _curves_panel(ax, name: str, runs: list[RunResult]) -> None:
-    runs = sorted(runs, key=lambda r: (method_rank(r.method), budget_rank(_budget(r)), r.seed))
-    budgets = list(dict.fromkeys(_budget(r) for r in sorted(runs, key=lambda r: budget_rank(_budget(r)))))
+    runs = sorted(runs, key=lambda r: (method_rank(r.method), budget_rank(budget_label(r)), r.seed))
+    budgets = list(dict.fromkeys(budget_label(r) for r in sorted(runs, key=lambda r: budget_rank(budget_label(r)))))
     styled = len(budgets) <= len(LINESTYLES)  # otherwise the budget is written at the end of each curve
     labelled = set()
     xs_all = []
     bands = {(b.method, b.budget, b.preset): b for b in seed_bands(runs)}
     curves = [(b.method, b.budget, b.preset, b.seconds, b.mean, b) for b in bands.values()]
-    curves += [(r.method, _budget(r), r.preset, [c.seconds for c in r.curve], [c.psnr for c in r.curve], None)
-               for r in runs if (r.method, _budget(r), r.preset) not in bands]
+    curves += [(r.method, budget_label(r), r.preset, [c.seconds for c in r.curve], [c.psnr for c in r.curve], None)
+               for r in runs if (r.method, budget_label(r), r.preset) not in bands]
     for method, budget, preset, xs, ys, band in curves:
         xs_all += [x for x in xs if x > 0]
         ls = LINESTYLES[budgets.index(budget)] if styled else "-"
@@ -137,12 +137,6 @@ def _curves_panel(ax, name: str, runs: list[RunResult]) -> None:
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(handles=handles, fontsize=6, loc="lower right")
-
-
-def _budget(r: RunResult) -> str:
-    if is_pattern(r) and pattern_cap(r) is not None:
-        return f"cap {pattern_cap(r)}"
-    return r.budget
 
 
 # ---- Pareto plots ------------------------------------------------------------------------------

@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import io
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch

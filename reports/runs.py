@@ -1,5 +1,6 @@
 """What a report's numbers are made of: a ``Value`` (a mean with its spread, or the reason there is
-none), the seeds' pooling rule (``seed_config`` / ``config_difference``) and a few names of the runs.
+none), the seeds' pooling rule (``seed_config`` / ``config_difference``) and a few names of the runs
+(read by ``smgs.cells.tree``, whose names the reports' modules import from here).
 
 A report never prints a number that is not there: every value is a ``Value`` that either holds a
 mean (with std and count over the runs it came from, and notes such as "2 of 3 seeds") or the
@@ -9,12 +10,13 @@ computed from the results table in reports/aggregate.py; the runs are read by ``
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from typing import Iterable
 
 from protocols.results import RunResult
-from smgs.cells.tree import (MAX_TEXT, PATTERN_DATASETS, LoadedRuns, Run, identity, is_pattern,  # noqa: F401
-                            load_runs, one_line, pattern_cap)
+from smgs.cells.tree import (PATTERN_DATASETS, LoadedRuns, Run, is_pattern, load_runs, one_line,  # noqa: F401
+                             pattern_cap)
 from smgs.identity import SeedRecord, pooling_key, seeds_difference
 
 
@@ -58,6 +60,20 @@ def preset_description(runs: Iterable[RunResult]) -> str:
             widths.append(w)
     parts = [f"{' or '.join(str(n) for n in sorted(steps))} steps"] if steps else []
     return ", ".join(parts + [f"images ≤ {' or '.join(str(w) for w in sorted(widths))} px wide"] * bool(widths))
+
+
+def presets_summary(runs: list[RunResult]) -> str:
+    """Each protocol preset of ``runs`` with its count of runs and what a reduced one changes, as the
+    report's header says it: "cpu (8 runs, 3000 steps, images ≤ 400 px wide); paper (2 runs)"."""
+    presets = Counter(r.preset for r in runs)
+    return "; ".join(f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})"
+                     for p, n in sorted(presets.items()))
+
+
+def budget_label(r: RunResult) -> str:
+    """A run's budget as the plots and report.html name it: a 2D pattern fit's "cap N", else its budget."""
+    cap = pattern_cap(r) if is_pattern(r) else None
+    return r.budget if cap is None else f"cap {cap}"
 
 
 def flow_estimator(r: RunResult) -> str:

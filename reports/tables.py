@@ -43,16 +43,14 @@ class Context:
 
     @staticmethod
     def of(runs: list[RunResult], paper: PaperTables, cells: Cells | None = None) -> "Context":
-        by: dict[str, list[RunResult]] = defaultdict(list)
-        for r in runs:
-            by[r.preset].append(r)
+        cells = cells if cells is not None else Cells.of(runs)
         presets = {}
-        for p, rs in by.items():
+        for (p,), rs in groups(cells, ["preset"]).items():
             if p != "paper":
                 desc = preset_description(rs)
                 presets[p] = (f"[{p}] = the {p} preset{f' ({desc})' if desc else ''}, a reduced protocol, not "
                               f"the paper's: its Δ to the paper is context, not a reproduction check")
-        return Context(paper, presets, cells if cells is not None else Cells.of(runs))
+        return Context(paper, presets, cells)
 
     def rows(self, real: bool) -> "pd.Index":
         """The rows of the real-scene runs, or (``real=False``) of the 2D pattern fits."""
@@ -247,7 +245,11 @@ class DatasetMeans:
     values: dict[RowKey, dict[str, Value]]  # row -> metric -> mean over common scenes
     subset_note: dict[RowKey, str]
     extra_scenes: list[str]
-    runs: list[RunResult]
+    row_runs: dict[RowKey, list[RunResult]]  # row -> its runs
+
+    @property
+    def runs(self) -> list[RunResult]:
+        return [r for rs in self.row_runs.values() for r in rs]
 
 
 def dataset_means(cells: Cells, dataset: str, names: list[str]) -> DatasetMeans:
@@ -258,7 +260,8 @@ def dataset_means(cells: Cells, dataset: str, names: list[str]) -> DatasetMeans:
     runs = cells.runs_at(rows)
     expected = expected_scenes(dataset, runs)
     extra = sorted({r.scene for r in runs} - set(expected))
-    keys = sorted({(r.method, r.budget, r.preset) for r in runs}, key=row_order)
+    row_runs = groups(cells, ["method", "budget", "preset"], rows)
+    keys = sorted(row_runs, key=row_order)
     seeds = seed_means(cells, ["method", "budget", "preset", "scene"], dict.fromkeys(["psnr", *names]), rows)
     psnr = {(k, s): seeds.get((*k, s), "psnr") for k in keys for s in expected}
     common: dict[str, list[str]] = {}
@@ -284,7 +287,7 @@ def dataset_means(cells: Cells, dataset: str, names: list[str]) -> DatasetMeans:
                              f"the paper's value is over all {len(expected)}")
             continue
         values[k] = {m: Value.absent(why) for m in names}
-    return DatasetMeans(dataset, expected, common, values, subset, extra, runs)
+    return DatasetMeans(dataset, expected, common, values, subset, extra, row_runs)
 
 
 def table2(runs: list[RunResult], ctx: Context) -> Section:
@@ -304,7 +307,7 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
         dm = dataset_means(ctx.cells, ds, [c.key for c in T2_COLUMNS])
         rows = []
         for k, vals in dm.values.items():
-            label, notes = ctx.label(k, [r for r in dm.runs if (r.method, r.budget, r.preset) == k])
+            label, notes = ctx.label(k, dm.row_runs[k])
             if k in dm.subset_note:
                 notes.append(dm.subset_note[k])
             method, budget, preset = k
@@ -313,8 +316,7 @@ def table2(runs: list[RunResult], ctx: Context) -> Section:
                       csv=_csv_id(k, dataset=ds, group=group, scenes=";".join(dm.common.get(preset, []))))
             for c in T2_COLUMNS:
                 row.paper[c.key] = ctx.paper_value(ctx.paper.t2(method, budget, ds, c.key), "Table 2")
-            nets = {r.lpips_net for r in dm.runs if (r.method, r.budget, r.preset) == k and r.lpips_net
-                    and "lpips" in r.metrics}
+            nets = {r.lpips_net for r in dm.row_runs[k] if r.lpips_net and "lpips" in r.metrics}
             odd = sorted(n for n in nets if "vgg" not in n.lower())
             if odd:
                 row.no_compare["lpips"] = f"LPIPS net {', '.join(odd)}; the paper's is VGG"
@@ -482,7 +484,3 @@ def table5(runs: list[RunResult], ctx: Context) -> Section:
                                 notes=mix_notes(dsr, "This block"), seeds=True))
     _add(sec, table5_paired([r for _, r, _ in rows], cols[:1], ctx.paper))
     return sec
-
-
-def failed_runs(runs: list[RunResult]) -> list[RunResult]:
-    return [r for r in runs if r.status != "ok"]

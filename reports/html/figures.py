@@ -16,8 +16,9 @@ from pathlib import Path
 from reports.diagnostics import PARAM_LABELS, param_names, param_groups, param_summary
 from reports.html.escape import plotly_text as pt
 from reports.paper import budget_rank, dataset_rank, method_label, method_rank, scene_rank
-from reports.plots import Band, Point, color, pareto_front, panel_name, seed_bands
-from reports.runs import Run, is_pattern, pattern_cap
+from reports.aggregate import Band, Cells, seed_bands
+from reports.plots import Point, color, pareto_front, panel_name
+from reports.runs import Run, budget_label, is_pattern
 from reports.tables import row_order
 from reports.tradeoff import tradeoff_points
 
@@ -45,11 +46,6 @@ def run_name(run: Run, runs_dir: Path) -> str:
         return run.path.parent.as_posix()
 
 
-def budget_of(run: Run) -> str:
-    r = run.result
-    return f"cap {pattern_cap(r)}" if is_pattern(r) and pattern_cap(r) is not None else r.budget
-
-
 def _layout(title: str, xlabel: str, ylabel: str, log_x: bool = False) -> dict:
     return {"title": {"text": pt(title), "font": {"size": 14}}, "height": 380, "margin": {"l": 60, "r": 10, "t": 40, "b": 50},
             "xaxis": {"title": {"text": pt(xlabel)}, "type": "log" if log_x else "linear"},
@@ -72,8 +68,8 @@ def time_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
             panels[f"{run.r.dataset}/{run.r.scene}"].append(run)
     figs = []
     for k, (panel, rs) in enumerate(panels.items()):
-        rs.sort(key=lambda x: (method_rank(x.r.method), budget_rank(budget_of(x)), x.r.seed))
-        budgets = list(dict.fromkeys(sorted((budget_of(x) for x in rs), key=budget_rank)))
+        rs.sort(key=lambda x: (method_rank(x.r.method), budget_rank(budget_label(x.r)), x.r.seed))
+        budgets = list(dict.fromkeys(sorted((budget_label(x.r) for x in rs), key=budget_rank)))
         seen: set = set()
         data = [_band_trace(b) for b in seed_bands([x.r for x in rs])]  # under the curves
         for run in rs:
@@ -83,10 +79,10 @@ def time_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
             data.append({
                 "type": "scatter", "mode": "lines+markers", "x": xs, "y": [c.psnr for c in r.curve],
                 **_legend(seen, r.method),
-                "line": {"color": color(r.method), "dash": DASHES[budgets.index(budget_of(run)) % len(DASHES)],
+                "line": {"color": color(r.method), "dash": DASHES[budgets.index(budget_label(run.r)) % len(DASHES)],
                          "width": 1.5},
                 "marker": {"symbol": SYMBOLS.get(r.preset, "triangle-up"), "size": 6},
-                "customdata": [[pt(name), pt(method_label(r.method)), pt(budget_of(run)), r.seed, pt(r.preset),
+                "customdata": [[pt(name), pt(method_label(r.method)), pt(budget_label(run.r)), r.seed, pt(r.preset),
                                 c.step, c.num_gaussians] for c in r.curve],
                 "hovertemplate": "run %{customdata[0]}<br>method %{customdata[1]} · budget %{customdata[2]} · "
                                  "seed %{customdata[3]} · preset %{customdata[4]}<br>step %{customdata[5]}: "
@@ -126,12 +122,12 @@ def _point_runs(runs: list[Run]) -> dict[tuple, list[Run]]:
     for run in runs:
         r = run.r
         panel = panel_name("patterns", r.scene) if is_pattern(r) else panel_name(r.dataset)
-        out[(panel, r.method, budget_of(run), r.preset)].append(run)
+        out[(panel, r.method, budget_label(run.r), r.preset)].append(run)
     return out
 
 
-def pareto_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
-    fps_pts, gs_pts = tradeoff_points([x.r for x in runs])
+def pareto_figures(runs: list[Run], runs_dir: Path, cells: Cells | None = None) -> list[Figure]:
+    fps_pts, gs_pts = tradeoff_points([x.r for x in runs], cells)
     behind = _point_runs(runs)
     figs = []
     for pts, key, xlabel, higher, what in ((fps_pts, "fps", "render FPS", True, "higher PSNR at higher FPS"),
@@ -200,21 +196,21 @@ def _pareto_figure(fid: str, panel: str, pts: list[Point], behind: dict, runs_di
 def consistency_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
     panels: dict[str, list[Run]] = defaultdict(list)
     for run in runs:
-        if run.r.status == "ok" and _pairs(run):
+        if run.r.status == "ok" and consistency_pairs(run):
             panels[f"{run.r.dataset}/{run.r.scene}"].append(run)
     figs = []
     for k, (panel, rs) in enumerate(sorted(panels.items())):
-        rs.sort(key=lambda x: (method_rank(x.r.method), budget_rank(budget_of(x)), x.r.seed))
+        rs.sort(key=lambda x: (method_rank(x.r.method), budget_rank(budget_label(x.r)), x.r.seed))
         seen: set = set()
         data = []
         for run in rs:
-            pairs = [p for p in _pairs(run) if p.get("mse") is not None]
+            pairs = [p for p in consistency_pairs(run) if p.get("mse") is not None]
             r = run.r
             step = (r.consistency or {}).get("step", 7)
             data.append({"type": "scatter", "mode": "lines", "x": [p["i"] for p in pairs],
                          "y": [p["mse"] for p in pairs], **_legend(seen, r.method),
                          "line": {"color": color(r.method), "width": 1.2},
-                         "customdata": [[pt(run_name(run, runs_dir)), pt(method_label(r.method)), pt(budget_of(run)),
+                         "customdata": [[pt(run_name(run, runs_dir)), pt(method_label(r.method)), pt(budget_label(run.r)),
                                          r.seed, p["j"]] for p in pairs],
                          "hovertemplate": "run %{customdata[0]}<br>method %{customdata[1]} · budget %{customdata[2]} · "
                                           "seed %{customdata[3]}<br>frames %{x} → %{customdata[4]}: MSE %{y:.4g}"
@@ -225,7 +221,7 @@ def consistency_figures(runs: list[Run], runs_dir: Path) -> list[Figure]:
     return figs
 
 
-def _pairs(run: Run) -> list[dict]:
+def consistency_pairs(run: Run) -> list[dict]:
     c = run.r.consistency or {}
     step = c.get("step", 7)
     scores = c.get("scores") or {}

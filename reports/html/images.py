@@ -13,9 +13,9 @@ from collections import defaultdict
 from pathlib import Path
 
 from reports.html.escape import rel_url
-from reports.html.figures import budget_of, run_name
+from reports.html.figures import run_name
 from reports.paper import budget_rank, dataset_rank, method_label, method_rank, scene_rank
-from reports.runs import Run
+from reports.runs import Run, budget_label
 
 MAX_VIEWS = 6   # views offered per scene: the ones with ground truth saved, else the first renders
 
@@ -54,22 +54,29 @@ def viewers(runs: list[Run], runs_dir: Path, out: Path) -> list[dict]:
         for run, renders, _, errors in items:
             r = run.r
             psnr = _view_psnr(r.per_view)
-            groups[(budget_of(run), r.preset, r.seed)].append({
+            groups[(budget_label(run.r), r.preset, r.seed)].append({
                 "method": method_label(r.method), "key": r.method, "run": run_name(run, runs_dir),
                 "render": {v: rel_url(renders[v], out) for v in views if v in renders},
                 "error": {v: rel_url(errors[v], out) for v in views if v in errors},
                 "psnr": {v: psnr[v] for v in views if v in psnr}})
-        glist = []
-        for (budget, preset, seed), rs in sorted(groups.items(), key=lambda kv: (budget_rank(kv[0][0]), kv[0][1] != "paper",
-                                                                                 kv[0][1], kv[0][2])):
-            rs.sort(key=lambda x: method_rank(x["key"]))
-            label = f"{budget} · seed {seed}" + ("" if preset == "paper" else f" · [{preset}]")
-            glist.append({"label": label, "runs": rs})
         out_list.append({"id": f"viewer-{k}", "scene": f"{ds}/{scene}", "views": views,
-                         "gt": {v: rel_url(gt[v], out) for v in views if v in gt}, "groups": glist,
+                         "gt": {v: rel_url(gt[v], out) for v in views if v in gt},
+                         "groups": by_configuration(groups, "runs"),
                          "note": "" if gt else "These runs saved no ground truth or |error| maps (runs made before "
                                                "eval.viewer_views existed): renders only."})
     return out_list
+
+
+def by_configuration(groups: dict[tuple, list[dict]], what: str) -> list[dict]:
+    """One scene's entries (a viewer's runs, a player's videos) grouped by (budget, preset, seed), in the
+    report's order (budget, the paper's preset first, seed), each group labelled "budget · seed s" (and
+    "· [preset]") with its entries under ``what``, in the methods' order."""
+    out = []
+    for (budget, preset, seed), entries in sorted(groups.items(), key=lambda kv: (
+            budget_rank(kv[0][0]), kv[0][1] != "paper", kv[0][1], kv[0][2])):
+        entries.sort(key=lambda x: method_rank(x["key"]))
+        out.append({"label": f"{budget} · seed {seed}" + ("" if preset == "paper" else f" · [{preset}]"), what: entries})
+    return out
 
 
 def _view_psnr(per_view: dict) -> dict[str, float]:
@@ -95,7 +102,7 @@ def strips(runs: list[Run], runs_dir: Path, out: Path) -> list[dict]:
             info = {}
         found.append((run, png, info if isinstance(info, dict) else {}))
     found.sort(key=lambda t: (dataset_rank(t[0].r.dataset), scene_rank(t[0].r.dataset, t[0].r.scene),
-                              method_rank(t[0].r.method), budget_rank(budget_of(t[0])), t[0].r.seed))
+                              method_rank(t[0].r.method), budget_rank(budget_label(t[0].r)), t[0].r.seed))
     return [{"scene": f"{run.r.dataset}/{run.r.scene}", "method": method_label(run.r.method), "run": run_name(run, runs_dir),
              "src": rel_url(png, out), "frames": info.get("frames"), "mse": info.get("mse"), "why": info.get("why", "")}
             for run, png, info in found]

@@ -15,13 +15,14 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from protocols.results import RunResult
+from reports.aggregate import Cells
 from reports.environment import environment_rows, this_machine
 from reports.html.escape import esc, script_json
 from reports.html.figures import Figure, consistency_figures, params_figure, pareto_figures, run_name, time_figures
 from reports.html.images import strips, viewers
 from reports.html.tables_html import plain_table, records_table, section_html
 from reports.html.videos import players
-from reports.runs import LoadedRuns, one_line, preset_description
+from reports.runs import LoadedRuns, one_line, presets_summary
 from reports.table_model import SEEDS_GUIDE, Section
 
 ASSETS = Path(__file__).resolve().parent / "assets"
@@ -48,7 +49,9 @@ def plotly_js() -> tuple[str | None, str | None]:
 def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: str | None,
                 tables: Sequence[Section], plot_error: str | None, diag: Section, stab: Section,
                 run_records: list[dict], csv_link: Callable[[str], str | None],
-                machine: dict[str, str] | None = None) -> str:
+                machine: dict[str, str] | None = None, cells: Cells | None = None) -> str:
+    """The page; ``cells``: the runs' results table where the caller made it (the trade-off points are
+    computed from it, as report.md's are)."""
     runs = loaded.runs
     results = [x.result for x in runs]
     used: set[str] = set()
@@ -73,7 +76,7 @@ def html_report(*, runs_dir: Path, out: Path, loaded: LoadedRuns, paper_error: s
 
     body.append(f'<h2 id="{ids("tradeoff")}">Error against run time</h2>')
     try:
-        time_figs, pareto_figs = time_figures(runs, runs_dir), pareto_figures(runs, runs_dir)
+        time_figs, pareto_figs = time_figures(runs, runs_dir), pareto_figures(runs, runs_dir, cells)
     except Exception as e:  # noqa: BLE001 - the rest of the page still matters
         time_figs, pareto_figs, plot_error = [], [], plot_error or f"{type(e).__name__}: {one_line(str(e), 300)}"
     if time_figs or pareto_figs:
@@ -145,11 +148,9 @@ def _header(runs_dir: Path, runs: list[RunResult], paper_error: str | None) -> s
     out = ["<h1>smgs report</h1>",
            f"<p>Runs directory: <code>{esc(runs_dir.resolve())}</code> · built {when} · {len(runs)} results ("
            + esc(", ".join(f"{n} {s}" for s, n in sorted(status.items()))) + ")</p>"]
-    presets = Counter(r.preset for r in runs)
+    presets = presets_summary(runs)
     if presets:
-        out.append("<p>Protocol presets: " + esc("; ".join(
-            f"{p} ({n} runs{', ' + preset_description([r for r in runs if r.preset == p]) if p != 'paper' else ''})"
-            for p, n in sorted(presets.items()))) + ".</p>")
+        out.append(f"<p>Protocol presets: {esc(presets)}.</p>")
     out.append(f"<p>Paper's numbers: {esc(paper_error)}.</p>" if paper_error else
                "<p>Paper's numbers: Softmax-GS paper, Tables 1–5 (reports/paper_tables/).</p>")
     out.append("<p>How to read the tables: each value of ours is followed by the paper's value and the difference "
@@ -186,7 +187,7 @@ PLAYERS_GUIDE = (
     "(8-bit), side by side for one configuration at a time, in step: one play/pause and one timeline for all. "
     "The strip under the timeline is the flow-warped MSE of the pair (i → i+{step}) ending at each frame, one row "
     "per method (black 0 → red → yellow → white at the highest of the configuration; a blank cell: no pair ends there or none is scored); "
-    "▼ marks the worst pair of all, a white tick each method's worst. Click the strip to go to that frame. "
+    "▼ marks the worst pair of all, a blue tick each method's worst. Click the strip to go to that frame. "
     "\"Warped error\" shows instead, over each frame dimmed, |frame i warped onto frame i+{step} − frame i+{step}| "
     "(mean over RGB; black 0 → red → yellow → white at ≥ 0.25, the scale of the test views' maps); darker still: "
     "pixels not scored (occluded, out of view, within 20 px of the border).")

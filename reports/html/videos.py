@@ -16,9 +16,10 @@ from collections import defaultdict
 from pathlib import Path
 
 from reports.html.escape import rel_url
-from reports.html.figures import _pairs, budget_of, run_name
-from reports.paper import budget_rank, dataset_rank, method_label, method_rank, scene_rank
-from reports.runs import Run, one_line
+from reports.html.figures import consistency_pairs, run_name
+from reports.html.images import by_configuration
+from reports.paper import dataset_rank, method_label, scene_rank
+from reports.runs import Run, budget_label, one_line
 
 FILES = ("frames_file", "error_file", "poster", "error_poster")
 RENDER_HINT = "`smgs render RUN_DIR` renders its video from the run's model"
@@ -47,7 +48,7 @@ def why_no_video(run: Run) -> str | None:
 def _per_frame(run: Run, n_frames: int) -> list[float | None]:
     """The warped MSE of the pair ending at each frame (None where no pair ends or none is scored)."""
     out: list[float | None] = [None] * n_frames
-    for p in _pairs(run):
+    for p in consistency_pairs(run):
         j, mse = p.get("j"), p.get("mse")
         if isinstance(j, int) and 0 <= j < n_frames and isinstance(mse, (int, float)) and math.isfinite(mse):
             out[j] = float(mse)
@@ -62,7 +63,7 @@ def _video(run: Run, runs_dir: Path, out: Path) -> dict:
     worst = max(scored)[1] if scored else None
     run_s = (r.diagnostics or {}).get("run_seconds")
     psnr = r.metrics.get("psnr")
-    return {"method": method_label(r.method), "key": r.method, "run": run_name(run, runs_dir), "budget": budget_of(run),
+    return {"method": method_label(r.method), "key": r.method, "run": run_name(run, runs_dir), "budget": budget_label(run.r),
             "seed": r.seed, "psnr": psnr if isinstance(psnr, (int, float)) else None,
             "src": rel_url(folder / v["frames_file"], out), "error_src": rel_url(folder / v["error_file"], out),
             "poster": rel_url(folder / v["poster"], out), "error_poster": rel_url(folder / v["error_poster"], out),
@@ -97,13 +98,8 @@ def _player(k: int, key: tuple, runs: list[Run], paths_of: dict[str, int], runs_
     ds, scene, n_frames, fps, step = key
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for run in runs:
-        groups[(budget_of(run), run.r.preset, run.r.seed)].append(_video(run, runs_dir, out))
-    glist = []
-    for (budget, preset, seed), vs in sorted(groups.items(), key=lambda kv: (budget_rank(kv[0][0]), kv[0][1] != "paper",
-                                                                            kv[0][1], kv[0][2])):
-        vs.sort(key=lambda x: method_rank(x["key"]))
-        glist.append({"label": f"{budget} · seed {seed}" + ("" if preset == "paper" else f" · [{preset}]"),
-                      "videos": vs})
+        groups[(budget_label(run.r), run.r.preset, run.r.seed)].append(_video(run, runs_dir, out))
+    glist = by_configuration(groups, "videos")
     name = f"{ds}/{scene}" + (f" ({n_frames} frames)" if paths_of[f"{ds}/{scene}"] > 1 else "")
     return {"id": f"player-{k}", "scene": name, "frames": n_frames, "fps": fps, "step": step, "groups": glist,
             "cost": cost_line([v for g in glist for v in g["videos"]])}
