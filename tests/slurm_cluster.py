@@ -7,7 +7,8 @@ which inherit the sweep's environment) carries ``SMGS_TEST_SLURM=<folder>``: the
 session that was killed are found by it and stopped before a new cluster starts.
 
 Use the ``slurm_cluster`` fixture (import it into the test module); it skips, saying why, where the
-tests do not run as root or the packages are not installed.
+tests do not run as root, the packages are not installed, or the cluster cannot start there (the
+error and its daemons' logs in the reason).
 """
 
 from __future__ import annotations
@@ -187,7 +188,11 @@ def slurm_cluster():
     if why:
         pytest.skip(why)
     clean_leftovers()
-    cluster = start()
+    try:
+        cluster = start()
+    except (RuntimeError, OSError, subprocess.SubprocessError) as e:   # installed, but cannot start here
+        detail = getattr(e, "stderr", None) or ""
+        pytest.skip(f"the single-node test SLURM cannot start here: {type(e).__name__}: {e} {detail}"[:2000])
     try:
         yield cluster
     finally:
