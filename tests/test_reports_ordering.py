@@ -7,12 +7,11 @@ import csv
 import sys
 from pathlib import Path
 
-from protocols.results import write_result
 from reports.build import main
 from reports.ordering import ordering, ordering_section
 
 sys.path.insert(0, str(Path(__file__).parent))
-from reports_tree import _ok  # noqa: E402
+from report_golden import case_apart  # noqa: E402
 
 
 def _block(md: str, title: str) -> str:
@@ -39,13 +38,7 @@ def test_ordering_check():
 
 
 def test_a_grid_run_apart_is_one_table1(tmp_path):
-    psnr = {"softmax_gs": 29.0, "gef_only": 24.0, "softmax_only": 19.0, "3dgs": 18.0}
-    for part, pattern in (("a", "circle4"), ("b", "rect4")):
-        for m, v in psnr.items():
-            for seed in (0, 1):
-                r = _ok(m, "patterns", pattern, "cap4", seed, v + seed, gs=4,
-                        config={"budget": {"name": "cap4", "cap": 4}})
-                write_result(tmp_path / part / "patterns" / pattern / m / "cap4" / f"seed{seed}", r)
+    case_apart(tmp_path)   # the four methods of a Table 1 grid, run apart in tmp_path/a and tmp_path/b
     out = tmp_path / "report"
     assert main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out), "--no-stability"]) == 0
     md = (out / "report.md").read_text()
