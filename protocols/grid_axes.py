@@ -11,27 +11,30 @@ once ran three seeds without a word).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from omegaconf import DictConfig, OmegaConf
+
+
+def _settings(overrides: list[str]) -> Iterator[tuple[str, str, str]]:
+    """Each ``key=V`` of the command line (also ``+key=V``, ``++key=V``) as (key, V, the override
+    without its ``+``)."""
+    for o in overrides:
+        text = o.lstrip("+")
+        k, sep, v = text.partition("=")
+        if sep:
+            yield k, v, text
 
 
 def given(overrides: list[str], key: str) -> str | None:
     """The value the command line gives ``key`` (``key=V``, ``+key=V`` or ``++key=V``; the last)."""
-    value = None
-    for o in overrides:
-        k, sep, v = o.lstrip("+").partition("=")
-        if sep and k == key:
-            value = v
-    return value
+    return next((v for k, v, _ in reversed(list(_settings(overrides))) if k == key), None)
 
 
 def touched(overrides: list[str], key: str) -> str | None:
     """The command line's setting of ``key`` or of a key below it, as written without its ``+``
     (``grid.seeds_of.slow=[0,1]`` sets ``grid.seeds_of``); None where it sets neither."""
-    for o in overrides:
-        k, sep, _ = o.lstrip("+").partition("=")
-        if sep and (k == key or k.startswith(key + ".")):
-            return o.lstrip("+")
-    return None
+    return next((t for k, _, t in _settings(overrides) if k == key or k.startswith(key + ".")), None)
 
 
 def _say(text: str) -> None:
